@@ -1,0 +1,74 @@
+# The two commands users need: `make demo` and `make test` (both set up first).
+SHELL := /bin/bash
+.SHELLFLAGS := -eo pipefail -c
+.DEFAULT_GOAL := help
+
+ROOT   := $(abspath .)
+VENV   := $(ROOT)/.venv
+WS     := $(ROOT)/.ws
+PY     := $(VENV)/bin/python
+SITE   := $(VENV)/lib/python3.11/site-packages
+# Debian 12's own ROS 1 and tools (see README for Ubuntu 20.04 + Noetic)
+APT_PACKAGES := ros-core catkin python3-rospy python3-roslaunch python3-rostest \
+  python3-rostopic python3-rosnode python3-rosparam python3-tf2-ros \
+  python3-std-msgs python3-geometry-msgs python3-sensor-msgs python3-trajectory-msgs \
+  python3-visualization-msgs python3-pykdl python3-numpy python3-yaml \
+  python3-catkin-pkg python3-venv python3-dev ros-robot-state-publisher rviz xvfb \
+  prusa-slicer cmake g++ make
+# everything a command needs: the workspace (ROS_PACKAGE_PATH, PYTHONPATH) and
+# the venv first on PATH (done by the package's catkin env hook)
+ROSENV := source $(WS)/devel/setup.bash &&
+
+.PHONY: help setup apt venv workspace test unit rostest bench demo clean
+
+help:
+	@echo "make setup  - install what is missing (apt, .venv, catkin workspace)"
+	@echo "make demo   - set up, then run the demo headless; outputs in out/demo"
+	@echo "make test   - set up, then run every test (pytest + rostest)"
+	@echo "make bench  - set up, then run the benchmarks"
+
+setup: apt venv workspace
+
+# apt: only when a package is missing (a no-op check takes ~0.1 s)
+apt:
+	@missing=$$(dpkg-query -W -f='$${Package} $${Status}\n' $(APT_PACKAGES) 2>/dev/null \
+	    | awk '$$NF=="installed"{print $$1}' | sort | comm -13 - <(tr ' ' '\n' <<<"$(APT_PACKAGES)" | grep . | sort)); \
+	if [ -n "$$missing" ]; then \
+	  echo "installing:" $$missing; \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -q && \
+	  DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -q --no-install-recommends $$missing; \
+	fi
+
+venv: $(VENV)/.done
+$(VENV)/.done: requirements.txt constraints.txt | apt
+	[ -x $(PY) ] || /usr/bin/python3 -m venv --system-site-packages $(VENV)
+	$(PY) -m pip install -q --disable-pip-version-check -r requirements.txt -c constraints.txt
+	echo "$(ROOT)/src" > $(SITE)/ambots-src.pth
+	$(PY) -c "import numpy, PyKDL, trimesh, manifold3d, yourdfpy, xacro, ompl; assert numpy.__version__ < '2', numpy.__version__"
+	touch $@
+
+workspace: $(WS)/devel/.done
+$(WS)/devel/.done: package.xml CMakeLists.txt setup.py $(wildcard nodes/* tests/ros/*.test config/env-hooks/*) | apt venv
+	mkdir -p $(WS)/src && ln -sfn ../.. $(WS)/src/ambots
+	cd $(WS) && catkin_make -DPYTHON_EXECUTABLE=/usr/bin/python3 -DCATKIN_ENABLE_TESTING=ON > build.log 2>&1 \
+	  || { tail -40 build.log; exit 1; }
+	touch $@
+
+test: setup
+	$(ROSENV) cd $(ROOT) && $(PY) -m pytest tests
+
+unit: setup
+	$(ROSENV) cd $(ROOT) && $(PY) -m pytest tests/unit
+
+rostest: setup
+	$(ROSENV) cd $(ROOT) && $(PY) -m pytest tests/ros
+
+bench: setup
+	$(ROSENV) cd $(ROOT) && $(PY) tests/bench/run.py
+
+demo: setup
+	$(ROSENV) cd $(ROOT) && $(PY) -m ambots demo --out out/demo
+
+clean:
+	rm -rf $(WS) out

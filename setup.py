@@ -1,0 +1,7 @@
+"""Python package layout for catkin_python_setup(); not for pip."""
+from setuptools import setup
+
+from catkin_pkg.python_setup import generate_distutils_setup
+
+setup(**generate_distutils_setup(packages=["ambots", "ambots.commands"],
+                                 package_dir={"": "src"}))

@@ -1,0 +1,5 @@
+import sys
+
+from ambots.cli import main
+
+sys.exit(main())
