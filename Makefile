@@ -13,7 +13,7 @@ APT_PACKAGES := ros-core catkin python3-rospy python3-roslaunch python3-rostest 
   python3-rostopic python3-rosnode python3-rosparam python3-tf2-ros \
   python3-std-msgs python3-geometry-msgs python3-sensor-msgs python3-trajectory-msgs \
   python3-visualization-msgs python3-pykdl python3-numpy python3-yaml \
-  python3-catkin-pkg python3-venv python3-dev ros-robot-state-publisher rviz xvfb \
+  python3-catkin-pkg librostest-dev python3-venv python3-dev ros-robot-state-publisher rviz xvfb \
   prusa-slicer cmake g++ make
 # everything a command needs: the workspace (ROS_PACKAGE_PATH, PYTHONPATH) and
 # the venv first on PATH (done by the package's catkin env hook)
@@ -31,10 +31,11 @@ setup: apt venv workspace
 
 # apt: only when a package is missing (a no-op check takes ~0.1 s)
 apt:
-	@missing=$$(dpkg-query -W -f='$${Package} $${Status}\n' $(APT_PACKAGES) 2>/dev/null \
-	    | awk '$$NF=="installed"{print $$1}' | sort | comm -13 - <(tr ' ' '\n' <<<"$(APT_PACKAGES)" | grep . | sort)); \
+	@missing=""; for p in $(APT_PACKAGES); do \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "ok installed" || missing="$$missing $$p"; \
+	done; \
 	if [ -n "$$missing" ]; then \
-	  echo "installing:" $$missing; \
+	  echo "installing:$$missing"; \
 	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 	  $$SUDO apt-get update -q && \
 	  DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -q --no-install-recommends $$missing; \

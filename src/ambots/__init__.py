@@ -9,12 +9,27 @@ import os
 
 __version__ = "0.1.0"
 
-#: Root of the package's data (``urdf/``, ``config/``, ``gcode/``...).  In a
-#: source checkout or catkin devel space it is the repository root; an install
-#: puts the same folders in ``share/ambots``.
-PACKAGE_ROOT = os.environ.get(
-    "AMBOTS_ROOT",
-    os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
+
+def _package_root():
+    """Root of the package's data (``urdf/``, ``config/``, ``gcode/``...): the
+    repository root in a source checkout or catkin devel space (where this
+    file may run from catkin's relay, so ``__path__`` is searched), else the
+    installed ``share/ambots``; ``AMBOTS_ROOT`` overrides both."""
+    if os.environ.get("AMBOTS_ROOT"):
+        return os.environ["AMBOTS_ROOT"]
+    for p in list(globals().get("__path__", [])) + [os.path.dirname(os.path.abspath(__file__))]:
+        root = os.path.dirname(os.path.dirname(os.path.realpath(p)))
+        if os.path.isfile(os.path.join(root, "package.xml")) and os.path.isdir(os.path.join(root, "urdf")):
+            return root
+    try:  # installed: data lives in share/ambots
+        import rospkg
+        return rospkg.RosPack().get_path("ambots")
+    except Exception:  # rospkg missing or package not on ROS_PACKAGE_PATH
+        return os.getcwd()
+
+
+#: see :func:`_package_root`
+PACKAGE_ROOT = _package_root()
 
 
 def data_path(*parts):

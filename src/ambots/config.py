@@ -1,0 +1,303 @@
+"""Arm profiles (``config/arms/<arm>.yaml``) and cells (``config/cells/<cell>.yaml``).
+
+One source of truth per concern: an arm profile says what the arm *is* (model
+file, joints and limits, tool offset, colour, driver names); a cell says which
+arms stand where (base poses in the ``world`` frame) around which print bed.
+Every value is checked when it is loaded, and a bad one raises
+:class:`~ambots.errors.ConfigError` naming the file and the field.
+
+Units: metres and radians (REP 103).
+"""
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Tuple
+
+import numpy as np
+import yaml
+
+from ambots import data_path
+from ambots.errors import ConfigError
+
+__all__ = ["ArmProfile", "ArmInstance", "Bed", "Cell", "load_arm_profile", "load_cell",
+           "pose_matrix", "resolve_path"]
+
+
+def resolve_path(path, relative_to=None):
+    """A config path as written by a user: absolute, relative to the current
+    folder, relative to ``relative_to`` (the file that names it), or relative
+    to the package root (``config/arms/ur10.yaml``)."""
+    if os.path.isabs(path):
+        return path
+    candidates = [path]
+    if relative_to:
+        candidates.append(os.path.join(os.path.dirname(relative_to), path))
+    candidates.append(data_path(path))
+    for c in candidates:
+        if os.path.exists(c):
+            return os.path.abspath(c)
+    return os.path.abspath(candidates[-1])
+
+
+def pose_matrix(xyz, rpy):
+    """4x4 homogeneous transform from translation ``xyz`` (m) and fixed-axis
+    roll-pitch-yaw ``rpy`` (rad), URDF convention: R = Rz(y) Ry(p) Rx(r)."""
+    r, p, y = rpy
+    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+    T = np.eye(4)
+    T[:3, :3] = [[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                 [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                 [-sp, cp * sr, cp * cr]]
+    T[:3, 3] = xyz
+    return T
+
+
+class _Reader:
+    """Checked access to a YAML mapping; errors name ``path`` and the field."""
+
+    def __init__(self, path, data, prefix=""):
+        self.path, self.data, self.prefix = path, data, prefix
+        if not isinstance(data, dict):
+            raise ConfigError(path, prefix or None, "expected a mapping, got %s" % type(data).__name__)
+
+    def _name(self, key):
+        return "%s.%s" % (self.prefix, key) if self.prefix else key
+
+    def get(self, key, default=KeyError):
+        if key not in self.data:
+            if default is KeyError:
+                raise ConfigError(self.path, self._name(key), "missing field")
+            return default
+        return self.data[key]
+
+    def str(self, key, default=KeyError):
+        v = self.get(key, default)
+        if not isinstance(v, str) or not v:
+            raise ConfigError(self.path, self._name(key), "expected a non-empty string, got %r" % (v,))
+        return v
+
+    def num(self, key, default=KeyError, positive=False):
+        v = self.get(key, default)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ConfigError(self.path, self._name(key), "expected a finite number, got %r" % (v,))
+        if positive and v <= 0:
+            raise ConfigError(self.path, self._name(key), "must be > 0, got %r" % (v,))
+        return float(v)
+
+    def vec(self, key, n, default=KeyError):
+        v = self.get(key, default)
+        if (not isinstance(v, (list, tuple)) or len(v) != n
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+                           for x in v)):
+            raise ConfigError(self.path, self._name(key), "expected a list of %d finite numbers, got %r" % (n, v))
+        return tuple(float(x) for x in v)
+
+    def sub(self, key, default=KeyError):
+        v = self.get(key, default)
+        return _Reader(self.path, v, self._name(key))
+
+    def items(self, key):
+        v = self.get(key)
+        if not isinstance(v, list) or not v:
+            raise ConfigError(self.path, self._name(key), "expected a non-empty list")
+        return [_Reader(self.path, item, "%s[%d]" % (self._name(key), i)) for i, item in enumerate(v)]
+
+
+def _load_yaml(path, what):
+    if not os.path.isfile(path):
+        raise ConfigError(path, None, "%s file not found" % what)
+    try:
+        with open(path) as f:
+            data = yaml.safe_load(f)
+    except yaml.YAMLError as exc:
+        raise ConfigError(path, None, "not valid YAML: %s" % exc) from None
+    return _Reader(path, data)
+
+
+@dataclass(frozen=True)
+class JointLimit:
+    name: str
+    lower: float           #: rad (-inf for a continuous joint)
+    upper: float           #: rad (+inf for a continuous joint)
+    velocity: float        #: rad/s
+    acceleration: float    #: rad/s^2
+    continuous: bool = False
+
+
+@dataclass(frozen=True)
+class ArmProfile:
+    """What an arm is (one ``config/arms/<arm>.yaml``)."""
+    path: str
+    name: str
+    brand: str
+    model: str                    #: absolute path of the xacro/URDF model
+    base_link: str
+    flange_link: str
+    tool_xyz: Tuple[float, float, float]
+    tool_rpy: Tuple[float, float, float]
+    reach: float                  #: m
+    joints: Tuple[JointLimit, ...]
+    home: Tuple[float, ...]       #: rad
+    velocity_scaling: float
+    colour: Tuple[float, float, float, float]
+    driver_joint_names: Tuple[str, ...]
+    driver_command_topic: str
+    driver_options: dict = field(default_factory=dict)
+
+    @property
+    def joint_names(self):
+        return tuple(j.name for j in self.joints)
+
+    @property
+    def tool_link(self):
+        return "nozzle"
+
+
+def load_arm_profile(path):
+    """Read and check an arm profile.  ``path`` may be relative to the package
+    root (``config/arms/ur10.yaml``)."""
+    path = resolve_path(path)
+    r = _load_yaml(path, "arm profile")
+    joints = []
+    for j in r.items("joints"):
+        cont = bool(j.get("continuous", False))
+        lower, upper = j.num("lower"), j.num("upper")
+        if lower >= upper:
+            raise ConfigError(path, j.prefix, "lower limit %g >= upper limit %g" % (lower, upper))
+        joints.append(JointLimit(j.str("name"), -math.inf if cont else lower, math.inf if cont else upper,
+                                 j.num("velocity", positive=True), j.num("acceleration", positive=True), cont))
+    n = len(joints)
+    home = r.vec("home", n)
+    for jl, q in zip(joints, home):
+        if not jl.lower <= q <= jl.upper:
+            raise ConfigError(path, "home", "%s = %g is outside its limits [%g, %g]" % (jl.name, q, jl.lower, jl.upper))
+    tool = r.sub("tool")
+    driver = r.sub("driver")
+    names = driver.get("joint_names")
+    if not isinstance(names, list) or len(names) != n or not all(isinstance(s, str) for s in names):
+        raise ConfigError(path, "driver.joint_names", "expected %d joint names" % n)
+    model = resolve_path(r.str("model"), path)
+    if not os.path.isfile(model):
+        raise ConfigError(path, "model", "model file %s not found" % model)
+    scaling = r.num("velocity_scaling", 1.0, positive=True)
+    if scaling > 1.0:
+        raise ConfigError(path, "velocity_scaling", "must be in (0, 1], got %g" % scaling)
+    return ArmProfile(
+        path=path, name=r.str("name"), brand=r.str("brand", ""), model=model,
+        base_link=r.str("base_link", "base_link"), flange_link=r.str("flange_link", "flange"),
+        tool_xyz=tool.vec("xyz", 3), tool_rpy=tool.vec("rpy", 3, (0.0, 0.0, 0.0)),
+        reach=r.num("reach", positive=True), joints=tuple(joints), home=home,
+        velocity_scaling=scaling, colour=r.vec("filament_colour", 4),
+        driver_joint_names=tuple(names), driver_command_topic=driver.str("command_topic"),
+        driver_options={k: v for k, v in driver.data.items() if k not in ("joint_names", "command_topic")})
+
+
+@dataclass(frozen=True)
+class ArmInstance:
+    """One arm standing in a cell."""
+    name: str            #: instance name; also the tf prefix ``<name>/`` and the ROS namespace
+    id: int              #: robot id used by the A-series protocol (``R<id>``)
+    profile: ArmProfile
+    base_xyz: Tuple[float, float, float]
+    base_rpy: Tuple[float, float, float]
+
+    @property
+    def prefix(self):
+        return self.name + "/"
+
+    @property
+    def base_pose(self):
+        """4x4 pose of the arm's base_link in the world frame."""
+        return pose_matrix(self.base_xyz, self.base_rpy)
+
+    def frame(self, link):
+        """tf frame id of one of this arm's links, e.g. ``ur10/nozzle``."""
+        return self.prefix + link
+
+
+@dataclass(frozen=True)
+class Bed:
+    size: Tuple[float, float, float]   #: x, y, thickness (m)
+    xyz: Tuple[float, float, float]    #: centre of the top surface in world (m)
+    rpy: Tuple[float, float, float]
+
+    @property
+    def pose(self):
+        return pose_matrix(self.xyz, self.rpy)
+
+
+@dataclass(frozen=True)
+class Cell:
+    """Which arms stand where, around which bed (one ``config/cells/<cell>.yaml``)."""
+    path: str
+    name: str
+    bed: Bed
+    arms: Tuple[ArmInstance, ...]
+    world_frame: str = "world"
+
+    def arm(self, name):
+        for a in self.arms:
+            if a.name == name:
+                return a
+        raise ConfigError(self.path, "arms", "unknown arm %r (this cell has: %s)"
+                          % (name, ", ".join(a.name for a in self.arms)))
+
+    def arm_by_id(self, robot_id):
+        for a in self.arms:
+            if a.id == robot_id:
+                return a
+        raise ConfigError(self.path, "arms", "unknown robot id %r (this cell has: %s)"
+                          % (robot_id, ", ".join(str(a.id) for a in self.arms)))
+
+    def subset(self, names):
+        """The same cell with only the named arms (in the given order)."""
+        return Cell(self.path, self.name, self.bed, tuple(self.arm(n) for n in names), self.world_frame)
+
+
+_NAME_OK = set("abcdefghijklmnopqrstuvwxyz0123456789_")
+
+
+def load_cell(path, min_base_distance=0.25):
+    """Read and check a cell.  Arm bases closer than ``min_base_distance`` (m)
+    are refused as overlapping."""
+    path = resolve_path(path)
+    r = _load_yaml(path, "cell")
+    bed = r.sub("bed")
+    size = bed.vec("size", 3)
+    if min(size) <= 0:
+        raise ConfigError(path, "bed.size", "every dimension must be > 0, got %r" % (size,))
+    bed_pose = bed.sub("pose")
+    the_bed = Bed(size, bed_pose.vec("xyz", 3), bed_pose.vec("rpy", 3, (0.0, 0.0, 0.0)))
+    arms, names, ids = [], set(), set()
+    for a in r.items("arms"):
+        name = a.str("name")
+        if not set(name) <= _NAME_OK or name[0].isdigit():
+            raise ConfigError(path, a.prefix + ".name", "%r: use lower-case letters, digits and _" % name)
+        if name in names:
+            raise ConfigError(path, a.prefix + ".name", "duplicate arm name %r" % name)
+        rid = a.get("id")
+        if isinstance(rid, bool) or not isinstance(rid, int) or rid < 1:
+            raise ConfigError(path, a.prefix + ".id", "expected a positive integer, got %r" % (rid,))
+        if rid in ids:
+            raise ConfigError(path, a.prefix + ".id", "duplicate robot id %d" % rid)
+        prof_path = resolve_path(a.str("profile"), path)
+        try:
+            profile = load_arm_profile(prof_path)
+        except ConfigError as exc:
+            raise ConfigError(path, a.prefix + ".profile", str(exc)) from None
+        base = a.sub("base")
+        arms.append(ArmInstance(name, rid, profile, base.vec("xyz", 3), base.vec("rpy", 3, (0.0, 0.0, 0.0))))
+        names.add(name)
+        ids.add(rid)
+    for i, a in enumerate(arms):
+        for b in arms[:i]:
+            d = float(np.linalg.norm(np.subtract(a.base_xyz, b.base_xyz)))
+            if d < min_base_distance:
+                raise ConfigError(path, "arms", "bases of %r and %r overlap: %.3f m apart (minimum %.2f m)"
+                                  % (b.name, a.name, d, min_base_distance))
+    return Cell(path, r.str("name"), the_bed, tuple(arms), r.str("world_frame", "world"))
+
+
+def default_cell_path():
+    """The cell used when none is given: Kinova Gen3 and UR10 facing each other."""
+    return data_path("config", "cells", "kinova_ur10.yaml")

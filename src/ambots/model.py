@@ -1,0 +1,64 @@
+"""Robot descriptions: one arm's URDF from its xacro model and profile, and
+the whole cell's URDF (world + bed + N arms with per-arm prefixes) generated
+from a cell config -- the N-arm counterpart of a hand-written dual-arm xacro.
+"""
+import xml.etree.ElementTree as ET
+
+from ambots.config import ArmInstance, ArmProfile, Cell
+from ambots.errors import KinematicsError
+
+__all__ = ["arm_urdf", "cell_urdf", "arm_kinematics"]
+
+
+def arm_urdf(profile: ArmProfile, prefix=""):
+    """URDF string of one arm: its xacro ``model`` processed with ``prefix``
+    (e.g. ``ur10/``) and the profile (joint limits, tool offset)."""
+    import xacro
+    try:
+        doc = xacro.process_file(profile.model, mappings={"prefix": prefix, "profile": profile.path})
+    except Exception as exc:  # xacro raises plain Exceptions of several kinds
+        raise KinematicsError("%s: xacro failed: %s" % (profile.model, exc)) from None
+    return doc.toxml()
+
+
+def _fmt(v):
+    return " ".join(repr(float(x)) for x in v)
+
+
+def cell_urdf(cell: Cell):
+    """URDF string of the whole cell: a ``world`` link, the print bed (a box
+    whose top face centre is the bed pose) and every arm of the cell, each
+    with its own prefix and a fixed joint world -> ``<arm>/base_link``."""
+    robot = ET.Element("robot", name=cell.name)
+    ET.SubElement(robot, "link", name=cell.world_frame)
+    bed = ET.SubElement(robot, "link", name="bed")
+    sx, sy, sz = cell.bed.size
+    for tag in ("visual", "collision"):
+        el = ET.SubElement(bed, tag)
+        ET.SubElement(el, "origin", xyz=_fmt((0, 0, -sz / 2)), rpy="0 0 0")
+        ET.SubElement(ET.SubElement(el, "geometry"), "box", size=_fmt((sx, sy, sz)))
+        if tag == "visual":
+            ET.SubElement(ET.SubElement(el, "material", name="bed"), "color", rgba="0.85 0.85 0.8 1")
+    j = ET.SubElement(robot, "joint", name="bed_joint", type="fixed")
+    ET.SubElement(j, "parent", link=cell.world_frame)
+    ET.SubElement(j, "child", link="bed")
+    ET.SubElement(j, "origin", xyz=_fmt(cell.bed.xyz), rpy=_fmt(cell.bed.rpy))
+    for arm in cell.arms:
+        part = ET.fromstring(arm_urdf(arm.profile, arm.prefix))
+        for el in part:
+            if el.tag in ("link", "joint"):
+                robot.append(el)
+        j = ET.SubElement(robot, "joint", name=arm.prefix + "base_joint", type="fixed")
+        ET.SubElement(j, "parent", link=cell.world_frame)
+        ET.SubElement(j, "child", link=arm.frame(arm.profile.base_link))
+        ET.SubElement(j, "origin", xyz=_fmt(arm.base_xyz), rpy=_fmt(arm.base_rpy))
+    ET.indent(robot)
+    return '<?xml version="1.0"?>\n' + ET.tostring(robot, encoding="unicode")
+
+
+def arm_kinematics(arm):
+    """:class:`~ambots.kinematics.ArmKinematics` base_link -> nozzle of an arm
+    (an :class:`ArmInstance` of a cell, or a bare :class:`ArmProfile`)."""
+    from ambots.kinematics import ArmKinematics
+    profile = arm.profile if isinstance(arm, ArmInstance) else arm
+    return ArmKinematics.from_urdf(arm_urdf(profile), base=profile.base_link, tip=profile.tool_link)

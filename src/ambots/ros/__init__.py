@@ -1,0 +1,1 @@
+"""The thin ROS layer: rospy wrappers around the core.  Only nodes import this."""

@@ -1,0 +1,33 @@
+"""Published kinematics and limits, copied from the project's shared
+ROBOT_FACTS.md (manufacturers' data) so that tests check the models against
+numbers that do not come from the models themselves.  Metres, radians."""
+import math
+
+# UR10 (CB3), standard DH (d, a, alpha) per joint; joint i rotates about z(i-1)
+UR10_DH = [
+    (0.1273, 0.0, math.pi / 2),
+    (0.0, -0.612, 0.0),
+    (0.0, -0.5723, 0.0),
+    (0.163941, 0.0, math.pi / 2),
+    (0.1157, 0.0, -math.pi / 2),
+    (0.0922, 0.0, 0.0),
+]
+UR10_FLANGE_AT_ZERO = (-1.1843, -0.256141, 0.0116)
+UR10_JOINTS = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint",
+               "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"]
+UR10_MAX_SPEED = [2.0944, 2.0944, 3.1416, 3.1416, 3.1416, 3.1416]
+UR10_RANGE = 2 * math.pi   # +-2 pi every joint (the ROS description narrows the elbow to +-pi)
+
+# Kinova Gen3 6 DOF: parent -> child (xyz, rpy); every joint axis is the child's z
+KINOVA_ORIGINS = [
+    ((0, 0, 0.15643), (-3.1416, 0, 0)),
+    ((0, 0.005375, -0.12838), (1.5708, 0, 0)),
+    ((0, -0.41, 0), (3.1416, 0, 0)),
+    ((0, 0.20843, -0.006375), (1.5708, 0, 0)),
+    ((0, -0.00017505, -0.10593), (-1.5708, 0, 0)),
+    ((0, 0.10593, -0.00017505), (1.5708, 0, 0)),
+]
+KINOVA_EE = ((0, 0, -0.061525), (3.1416, 0, -3.1416))   # bracelet_link -> end_effector_link
+KINOVA_JOINTS = ["joint_%d" % i for i in range(1, 7)]
+KINOVA_LIMITS = [None, (-2.24, 2.24), (-2.57, 2.57), None, (-2.09, 2.09), None]   # None: continuous
+KINOVA_MAX_SPEED = [1.3963, 1.3963, 1.3963, 1.2218, 1.2218, 1.2218]
