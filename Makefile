@@ -42,11 +42,14 @@ apt:
 	fi
 
 venv: $(VENV)/.done
-$(VENV)/.done: requirements.txt constraints.txt | apt
+$(VENV)/.done: requirements.txt | apt
 	[ -x $(PY) ] || /usr/bin/python3 -m venv --system-site-packages $(VENV)
-	$(PY) -m pip install -q --disable-pip-version-check -r requirements.txt -c constraints.txt
+	# keep Debian's numpy (PyKDL is built against it; numpy 2 makes it segfault)
+	/usr/bin/python3 -c "import numpy; print('numpy==' + numpy.__version__)" > $(VENV)/constraints.txt
+	$(PY) -m pip install -q --disable-pip-version-check -r requirements.txt -c $(VENV)/constraints.txt
 	echo "$(ROOT)/src" > $(SITE)/ambots-src.pth
-	$(PY) -c "import numpy, PyKDL, trimesh, manifold3d, yourdfpy, xacro, ompl; assert numpy.__version__ < '2', numpy.__version__"
+	$(PY) -c "import numpy, PyKDL, trimesh, manifold3d, yourdfpy, xacro, ompl; \
+	  assert numpy.__file__.startswith('/usr/lib/python3/'), numpy.__file__"
 	touch $@
 
 workspace: $(WS)/devel/.done
@@ -69,7 +72,10 @@ bench: setup
 	$(ROSENV) cd $(ROOT) && $(PY) tests/bench/run.py
 
 demo: setup
-	$(ROSENV) cd $(ROOT) && $(PY) -m ambots demo --out out/demo
+	mkdir -p out/demo
+	$(ROSENV) cd $(ROOT) && $(PY) -m ambots cell --urdf out/demo/cell.urdf | tee out/demo/cell.txt
+	$(ROSENV) cd $(ROOT) && roslaunch ambots demo.launch out:=$(ROOT)/out/demo
+	@ls -l out/demo
 
 clean:
 	rm -rf $(WS) out

@@ -145,6 +145,15 @@ def _kdl_frame(T):
     return kdl.Frame(kdl.Rotation(*R.ravel().tolist()), kdl.Vector(*T[:3, 3].tolist()))
 
 
+def _cross(a, b):
+    """Row-wise cross product of (N, 3) arrays (np.cross is slow on small rows)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
 def _rodrigues(axis, q):
     """Rotation matrices about unit ``axis`` (3,) by angles ``q`` (N,) -> (N, 3, 3)."""
     x, y, z = axis
@@ -257,7 +266,7 @@ class ArmKinematics:
                     J[:, :3, k] = z
                     J[:, 3:, k] = 0.0
                 else:
-                    J[:, :3, k] = np.cross(z, tip - p)
+                    J[:, :3, k] = _cross(z, tip - p)
                     J[:, 3:, k] = z
         return T, (np.stack(link_frames, axis=1) if frames else None), J
 
@@ -306,9 +315,9 @@ class ArmKinematics:
         D = D / np.linalg.norm(D, axis=1, keepdims=True)
         # an orthonormal pair (u, v) perpendicular to each wanted direction
         helper = np.where(np.abs(D[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-        U = np.cross(D, helper)
+        U = _cross(D, np.broadcast_to(helper, D.shape))
         U /= np.linalg.norm(U, axis=1, keepdims=True)
-        V = np.cross(D, U)
+        V = _cross(D, U)
         finite_limits = np.isfinite(self.lower) | np.isfinite(self.upper)
         Q = np.clip(Q, self.lower, self.upper)
         ok = np.zeros(N, dtype=bool)
@@ -320,7 +329,7 @@ class ArmKinematics:
             a = T[:, :3, :3] @ self.tool_axis
             ep = P[active] - T[:, :3, 3]
             d = D[active]
-            c = np.cross(a, d)
+            c = _cross(a, d)
             sin_t = np.linalg.norm(c, axis=1)
             cos_t = np.einsum("ij,ij->i", a, d)
             ang = np.arctan2(sin_t, cos_t)
@@ -364,7 +373,7 @@ class ArmKinematics:
                 "(%.2f, %.2f, %.2f): closest reached %.4f m away" % (tuple(p) + tuple(np.ravel(axis)[:3]) + (err[0],)))
         return Q[0]
 
-    def ik_path(self, positions, seed, axis=DOWN, key_spacing=0.01, max_joint_step=None, **kw):
+    def ik_path(self, positions, seed, axis=DOWN, key_spacing=0.02, max_joint_step=None, **kw):
         """IK along a densely sampled path, continuous from ``seed``.
 
         Key points at most ``key_spacing`` (m) apart are solved one after the

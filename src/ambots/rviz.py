@@ -32,9 +32,9 @@ def rviz_config(cell: Cell):
     centre = (bases.min(axis=0) + bases.max(axis=0)) / 2
     span = float(np.max(np.ptp(bases, axis=0))) + 1.0
     view = {"Class": "rviz/Orbit", "Name": "Current View", "Target Frame": "<Fixed Frame>",
-            "Distance": round(1.4 * span, 3),
+            "Distance": round(1.05 * span, 3),
             "Focal Point": {"X": round(float(centre[0]), 3), "Y": round(float(centre[1]), 3),
-                            "Z": round(float(cell.bed.xyz[2]) + 0.3, 3)},
+                            "Z": round(float(cell.bed.xyz[2]) + 0.2, 3)},
             "Pitch": 0.45, "Yaw": 4.2, "Near Clip Distance": 0.01, "Field of View": 0.785}
     cfg = {
         "Panels": [{"Class": "rviz/Displays", "Name": "Displays"}],
