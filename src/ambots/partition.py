@@ -1,0 +1,177 @@
+"""Split a model among the arms of a cell.
+
+The parts are the cells of a *power diagram* of the arms' base positions on
+the bed: part i holds the points p of the model with
+
+    |p - s_i|^2 - w_i  <=  |p - s_j|^2 - w_j    for every other arm j,
+
+s_i being arm i's base projected onto the bed.  Every boundary is a vertical
+plane perpendicular to the line between two arms, so each arm gets the side
+of the model that faces it, for any number of arms and any layout (two arms
+facing each other get one plane, as in the original project; four in the
+corners get a cross; a row of arms along a beam gets parallel planes).  The
+weights w_i move the planes until the arms' estimated print times balance.
+The cuts are manifold3d half-space trims, so the parts are closed volumes
+whose union is the model.
+
+Seams: ``straight`` (the parts meet at the plane) or ``overlap`` (each part
+reaches half a bead width past the plane, so neighbours overlap by one bead
+width and the seam fuses).
+
+Units: millimetres in the bed frame (the G-code frame: origin at the centre
+of the bed's top surface, z up).
+"""
+from dataclasses import dataclass, field
+from typing import List, Tuple
+
+import numpy as np
+
+from ambots.errors import MeshError
+from ambots.units import MM, m_to_mm
+
+__all__ = ["Part", "PrintEstimate", "partition", "arm_sites_mm", "estimate_print_time"]
+
+
+@dataclass(frozen=True)
+class PrintEstimate:
+    """What the balance needs to know about how a part will be printed."""
+    bead_width: float = 0.45       #: mm
+    layer_height: float = 0.2      #: mm
+    perimeters: int = 2
+    infill_density: float = 0.2    #: 0..1
+    speed: float = 40.0            #: mm/s while extruding
+
+
+def estimate_print_time(manifold, est=PrintEstimate()):
+    """Seconds to print a closed volume: walls (surface x wall thickness) at
+    full density, the rest at the infill density, laid as beads of
+    ``bead_width`` x ``layer_height`` at ``speed``."""
+    volume = manifold.volume()
+    if volume <= 0:
+        return 0.0
+    walls = min(volume, manifold.surface_area() * est.bead_width * est.perimeters)
+    deposit = walls + (volume - walls) * est.infill_density
+    return deposit / (est.bead_width * est.layer_height * est.speed)
+
+
+@dataclass
+class Part:
+    arm: object                    #: the ArmInstance that prints it
+    manifold: object               #: manifold3d.Manifold, mm, bed frame
+    planes: List[Tuple[np.ndarray, float]] = field(default_factory=list)  #: kept side: n . p >= offset
+    est_time_s: float = 0.0
+
+    @property
+    def volume(self):
+        return self.manifold.volume()
+
+    @property
+    def empty(self):
+        return self.manifold.is_empty() or self.manifold.volume() <= 0
+
+    def to_trimesh(self):
+        import trimesh
+        m = self.manifold.to_mesh()
+        return trimesh.Trimesh(np.asarray(m.vert_properties)[:, :3], np.asarray(m.tri_verts), process=False)
+
+
+def arm_sites_mm(cell, arms):
+    """Arm base positions projected onto the bed, (N, 2) mm in the bed frame."""
+    T = np.linalg.inv(cell.bed.pose)
+    pts = np.array([T[:3, :3] @ a.base_xyz + T[:3, 3] for a in arms])
+    return m_to_mm(pts[:, :2])
+
+
+def _planes(sites, weights, i, shift=0.0):
+    """Half-spaces (n, offset) of power cell i; ``shift`` (mm) moves each plane
+    outward (into the neighbour)."""
+    out = []
+    for j in range(len(sites)):
+        if j == i:
+            continue
+        d = sites[i] - sites[j]
+        L = float(np.linalg.norm(d))
+        n = np.array([d[0] / L, d[1] / L, 0.0])
+        off = (sites[i] @ sites[i] - sites[j] @ sites[j] + weights[j] - weights[i]) / (2 * L)
+        out.append((n, off - shift))
+    return out
+
+
+def _cut(model, planes):
+    part = model
+    for n, off in planes:
+        part = part.trim_by_plane(n.tolist(), float(off))
+    return part
+
+
+def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tolerance=1.02,
+              max_iter=80, check_reach=True):
+    """Split ``model`` (manifold3d.Manifold, mm, bed frame) among ``arms`` (default:
+    every arm of ``cell``) and return one :class:`Part` per arm, in order.
+
+    The weights are adjusted until the longest estimated print time is within
+    ``tolerance`` of the shortest (or ``max_iter`` rounds).  With
+    ``check_reach``, every vertex of every part must be reachable by its arm
+    with the nozzle down; otherwise :class:`MeshError` says which arm misses
+    by how much.
+    """
+    arms = list(cell.arms if arms is None else arms)
+    if seam not in ("straight", "overlap"):
+        raise ValueError("seam must be 'straight' or 'overlap', got %r" % seam)
+    if model.is_empty() or model.volume() <= 0:
+        raise MeshError("nothing to partition: the model is empty")
+    if len(arms) == 1:
+        parts = [Part(arms[0], model, [], estimate_print_time(model, est))]
+    else:
+        sites = arm_sites_mm(cell, arms)
+        lo, hi = np.array(model.bounding_box()[:2]), np.array(model.bounding_box()[3:5])
+        centre = (lo + hi) / 2
+        size2 = float(np.sum((hi - lo) ** 2))
+        # start with every boundary through the model's centre
+        w = np.sum((sites - centre) ** 2, axis=1)
+        best = None
+        step = 0.5
+        prev_sign = None
+        for _ in range(max_iter):
+            times = np.array([estimate_print_time(_cut(model, _planes(sites, w, i)), est)
+                              for i in range(len(arms))])
+            ratio = times.max() / max(times.min(), 1e-9)
+            if best is None or ratio < best[0]:
+                best = (ratio, w.copy())
+            if ratio <= tolerance:
+                break
+            rel = (times - times.mean()) / times.mean()
+            sign = np.sign(rel)
+            if prev_sign is not None and np.any(sign * prev_sign < 0):
+                step *= 0.7          # overshoot: take smaller steps
+            prev_sign = sign
+            w = w - step * rel * size2
+        w = best[1]
+        shift = est.bead_width / 2 if seam == "overlap" else 0.0
+        parts = []
+        for i, arm in enumerate(arms):
+            planes = _planes(sites, w, i, shift)
+            piece = _cut(model, planes)
+            parts.append(Part(arm, piece, planes, estimate_print_time(_cut(model, _planes(sites, w, i)), est)))
+    if check_reach:
+        for part in parts:
+            _check_reach(cell, part)
+    return parts
+
+
+def _check_reach(cell, part, heights_above=0.0):
+    from ambots.model import arm_kinematics
+    from ambots.workspace import down_in_base, world_to_base
+    if part.empty:
+        return
+    mesh = part.manifold.to_mesh()
+    v = np.asarray(mesh.vert_properties)[:, :3] * MM                 # bed frame, m
+    world = v @ cell.bed.pose[:3, :3].T + cell.bed.pose[:3, 3]
+    arm = part.arm
+    kin = arm_kinematics(arm)
+    _, ok, err = kin.ik_batch(world_to_base(arm, world), np.asarray(arm.profile.home), down_in_base(arm))
+    if not ok.all():
+        worst = int(np.argmax(np.where(ok, -1.0, err)))
+        raise MeshError("the part for arm %r has %d of %d corners out of its reach; worst at "
+                        "(%.1f, %.1f, %.1f) mm on the bed, missed by %.1f mm"
+                        % (arm.name, (~ok).sum(), len(ok), *m_to_mm(v[worst]), m_to_mm(err[worst])))

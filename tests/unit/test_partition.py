@@ -1,0 +1,104 @@
+"""Partition of a model among the arms of a cell."""
+import manifold3d as m3
+import numpy as np
+import pytest
+import yaml
+
+from ambots import data_path
+from ambots.config import default_cell_path, load_cell
+from ambots.errors import MeshError
+from ambots.partition import arm_sites_mm, partition
+
+
+def cube():
+    return m3.Manifold.cube([40, 40, 40]).translate([-20, -20, 0])
+
+
+def cylinder():
+    return m3.Manifold.cylinder(50, 25, 25, 64)
+
+
+def overhang():   # a T: the bar overhangs the stem
+    return (m3.Manifold.cube([12, 12, 30]).translate([-6, -6, 0])
+            + m3.Manifold.cube([60, 12, 8]).translate([-30, -6, 30]))
+
+
+def hole_through():
+    return (m3.Manifold.cube([50, 50, 30]).translate([-25, -25, 0])
+            - m3.Manifold.cylinder(40, 8, 8, 48).translate([0, 0, -5]))
+
+
+MODELS = {"cube": cube, "cylinder": cylinder, "overhang": overhang, "hole": hole_through}
+
+
+@pytest.fixture(scope="module")
+def cell():
+    return load_cell(default_cell_path())
+
+
+def union(parts):
+    return m3.Manifold.batch_boolean([p.manifold for p in parts], m3.OpType.Add)
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+@pytest.mark.parametrize("seam", ["straight", "overlap"])
+def test_parts_union_is_the_model_and_print_times_balance(cell, name, seam):
+    model = MODELS[name]()
+    parts = partition(model, cell, seam=seam)       # also checks every part is in its arm's reach
+    assert [p.arm.name for p in parts] == ["kinova", "ur10"]
+    assert abs(union(parts).volume() - model.volume()) <= 1e-3 * model.volume()
+    # nothing outside the model
+    assert abs((union(parts) - model).volume()) <= 1e-6 * model.volume()
+    times = [p.est_time_s for p in parts]
+    assert max(times) / min(times) <= 1.10
+    total = sum(p.volume for p in parts)
+    if seam == "straight":
+        assert total == pytest.approx(model.volume(), rel=1e-6)
+    else:
+        assert total > model.volume()      # the overlap is counted twice
+
+
+def test_each_arm_gets_the_side_facing_it(cell):
+    kinova, ur10 = partition(cube(), cell)
+    # Kinova stands at -x of the bed, the UR10 at +x
+    assert kinova.manifold.bounding_box()[3] <= 1e-9
+    assert ur10.manifold.bounding_box()[0] >= -1e-9
+
+
+def test_overlap_seam_is_one_bead_wide(cell):
+    kinova, ur10 = partition(cube(), cell, seam="overlap")
+    overlap = (kinova.manifold ^ ur10.manifold)
+    lo, hi = overlap.bounding_box()[0], overlap.bounding_box()[3]
+    assert hi - lo == pytest.approx(0.45, abs=1e-6)
+
+
+def test_one_arm_gets_everything(cell):
+    (part,) = partition(cube(), cell, arms=[cell.arm("ur10")])
+    assert part.volume == pytest.approx(cube().volume())
+
+
+def test_a_model_out_of_reach_is_refused_by_how_much(cell):
+    big = m3.Manifold.cube([280, 380, 20]).translate([-140, -190, 0]).translate([0, 0, 600])
+    with pytest.raises(MeshError, match=r"out of its reach; worst at .* missed by \d+\.\d mm"):
+        partition(big, cell)
+
+
+def test_four_arms_in_the_corners_get_four_balanced_quarters(tmp_path):
+    with open(default_cell_path()) as f:
+        data = yaml.safe_load(f)
+    prof = {"kinova": data_path("config/arms/kinova_gen3.yaml"), "ur10": data_path("config/arms/ur10.yaml")}
+    data["arms"] = [{"name": "a%d" % i, "id": i + 1, "profile": prof["kinova" if i % 2 else "ur10"],
+                     "base": {"xyz": [0.48 + x, y, 0.0], "rpy": [0, 0, 0]}}
+                    for i, (x, y) in enumerate([(-0.6, -0.6), (0.6, -0.6), (0.6, 0.6), (-0.6, 0.6)])]
+    path = tmp_path / "four.yaml"
+    path.write_text(yaml.safe_dump(data))
+    cell4 = load_cell(str(path))
+    model = cylinder()
+    parts = partition(model, cell4, check_reach=False)
+    assert union(parts).volume() == pytest.approx(model.volume(), rel=1e-3)
+    times = [p.est_time_s for p in parts]
+    assert max(times) / min(times) <= 1.10
+    sites = arm_sites_mm(cell4, cell4.arms)
+    for p, s in zip(parts, sites):     # each quarter lies towards its arm
+        c = np.mean(np.asarray(p.manifold.to_mesh().vert_properties)[:, :2], axis=0)
+        assert np.dot(c, s) > 0
