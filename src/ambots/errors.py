@@ -24,7 +24,8 @@ class GCodeError(AmbotsError):
 
     def __init__(self, path, line, text, message):
         self.path, self.line, self.text, self.message = path, line, text, message
-        super().__init__("%s:%s: %s: %r" % (path, line, message, text))
+        where = "%s:%s" % (path, line) if line else str(path)
+        super().__init__("%s: %s: %r" % (where, message, text) if text else "%s: %s" % (where, message))
 
 
 class ProtocolError(AmbotsError):
