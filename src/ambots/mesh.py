@@ -1,0 +1,342 @@
+"""Model input: read a mesh file, repair what can be repaired, refuse the rest.
+
+Every model is a :class:`trimesh.Trimesh` in **millimetres** (STL, OBJ, PLY and
+3MF carry no reliable unit; use ``scale`` to convert, e.g. ``scale=25.4`` for
+inches).  The slicer and the G-code share this frame, which is why this module
+works in mm rather than in the metres used elsewhere in the package (see
+:mod:`ambots.units`).
+
+The pipeline of :func:`load_model` is::
+
+    check the file -> read -> check the numbers -> scale -> weld -> repair -> validate
+
+and every refusal is a :class:`~ambots.errors.MeshError` whose message starts
+with the file name and names the defect ("223 open edges", "zero volume"...),
+so a user can fix the input without reading a traceback.
+"""
+import logging
+import os
+import struct
+
+import manifold3d
+import numpy as np
+import trimesh
+
+from ambots.errors import MeshError
+
+log = logging.getLogger(__name__)
+
+#: file extensions :func:`load_model` reads (lower case, without the dot)
+SUPPORTED_FORMATS = ("stl", "obj", "ply", "3mf")
+
+#: default refusal limit on the number of triangles of a model
+DEFAULT_MAX_TRIANGLES = 5_000_000
+
+#: key of ``Trimesh.metadata`` holding the name used in messages
+SOURCE_KEY = "ambots_source"
+#: key of ``Trimesh.metadata`` holding the list of repairs made on load
+REPAIRS_KEY = "ambots_repairs"
+
+
+# ---------------------------------------------------------------- loading
+
+def load_model(path, scale=1.0, max_triangles=DEFAULT_MAX_TRIANGLES, repair=True):
+    """Read a model file and return a closed, consistently oriented mesh.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+      An ``.stl`` (ASCII or binary), ``.obj``, ``.ply`` or ``.3mf`` file.
+    scale : float
+      Factor applied to the vertices; the result is in millimetres.
+    max_triangles : int
+      Files with more triangles are refused (the message gives the count).
+    repair : bool
+      Drop degenerate and duplicate triangles, fill small holes, fix
+      winding and normals, and merge overlapping shells.  With ``False``
+      the mesh is only welded (shared vertices merged) and validated.
+
+    Returns
+    -------
+    mesh : trimesh.Trimesh
+      Watertight, outward-oriented, positive volume, in mm.
+      ``mesh.metadata['ambots_source']`` is the file name and
+      ``mesh.metadata['ambots_repairs']`` lists the repairs made (strings).
+
+    Raises
+    ------
+    MeshError
+      The file is missing, empty, of an unknown format, not a mesh, too
+      large, has non-finite coordinates, or is still not a closed volume
+      after repair.
+    """
+    path = os.fspath(path)
+    name = os.path.basename(path) or path
+    if not (np.isfinite(scale) and scale > 0):
+        raise MeshError("%s: scale must be a positive number, got %r" % (name, scale))
+    ext = _check_file(path, name)
+    if ext == "stl":
+        _check_binary_stl_count(path, name, max_triangles)
+    mesh = _read(path, name, ext)
+    check_numbers(mesh, name, max_triangles)
+    if scale != 1.0:
+        mesh.apply_scale(float(scale))
+    mesh.metadata[SOURCE_KEY] = name
+    mesh.metadata[REPAIRS_KEY] = []
+    # weld: STL stores every triangle's corners apart, OBJ splits vertices
+    # by normal and texture; a closed surface needs shared vertices
+    mesh.merge_vertices(merge_tex=True, merge_norm=True)
+    # trimesh divides by the volume (centre of mass) in several places:
+    # a flat mesh must end up as a message, not as a RuntimeWarning
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if repair:
+            mesh = repair_mesh(mesh)
+        validate_mesh(mesh)
+    for note in mesh.metadata[REPAIRS_KEY]:
+        log.info("%s: repaired: %s", name, note)
+    return mesh
+
+
+def _check_file(path, name):
+    """Refuse a missing, empty or unknown-format file; return its extension."""
+    ext = os.path.splitext(path)[1].lower().lstrip(".")
+    if ext not in SUPPORTED_FORMATS:
+        raise MeshError("%s: unknown model format %r; supported: %s" % (
+            name, "." + ext if ext else "(no extension)",
+            ", ".join("." + e for e in SUPPORTED_FORMATS)))
+    if not os.path.isfile(path):
+        raise MeshError("%s: no such file" % path)
+    if os.path.getsize(path) == 0:
+        raise MeshError("%s: file is empty" % name)
+    return ext
+
+
+def _check_binary_stl_count(path, name, max_triangles):
+    """Refuse a binary STL announcing too many triangles before reading it.
+
+    A binary STL is an 80-byte header, a uint32 triangle count and 50 bytes
+    per triangle; a file whose size matches that layout is binary."""
+    size = os.path.getsize(path)
+    if size < 84:
+        return
+    with open(path, "rb") as f:
+        f.seek(80)
+        (count,) = struct.unpack("<I", f.read(4))
+    if size == 84 + 50 * count and count > max_triangles:
+        raise MeshError("%s: %s triangles, more than the limit of %s" % (
+            name, format(count, ","), format(max_triangles, ",")))
+
+
+def _read(path, name, ext):
+    """Read any supported file into one Trimesh, unprocessed."""
+    try:
+        # trimesh raises whatever its format parsers raise (ValueError,
+        # BadZipFile, KeyError, struct.error...): all mean "not a mesh"
+        mesh = trimesh.load(path, file_type=ext, force="mesh", process=False)
+    except Exception as exc:  # noqa: BLE001 -- boundary to third-party parsers
+        raise MeshError("%s: not a readable %s file (%s: %s)" % (
+            name, ext.upper(), type(exc).__name__, exc)) from None
+    if isinstance(mesh, trimesh.Scene):  # force='mesh' gives a Scene when empty
+        mesh = trimesh.Trimesh()
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise MeshError("%s: contains no triangles: not a valid %s file" % (name, ext.upper()))
+    return mesh
+
+
+def check_numbers(mesh, name, max_triangles=DEFAULT_MAX_TRIANGLES):
+    """Refuse too many triangles, non-finite vertices and bad indices."""
+    n = len(mesh.faces)
+    if n > max_triangles:
+        raise MeshError("%s: %s triangles, more than the limit of %s" % (
+            name, format(n, ","), format(max_triangles, ",")))
+    bad = ~np.isfinite(mesh.vertices).all(axis=1)
+    if bad.any():
+        raise MeshError("%s: %d vertices have NaN or infinite coordinates (first: vertex %d)"
+                        % (name, bad.sum(), np.flatnonzero(bad)[0]))
+    if len(mesh.vertices) == 0 or mesh.faces.min() < 0 or mesh.faces.max() >= len(mesh.vertices):
+        raise MeshError("%s: triangles refer to vertices that do not exist" % name)
+
+
+# ----------------------------------------------------------------- repair
+
+def repair_mesh(mesh):
+    """Repair what can be repaired, in place, and return the mesh.
+
+    Steps: merge coincident vertices (no note: routine); drop degenerate and duplicate
+    triangles; fill holes of 3 or 4 edges; make the winding consistent and
+    the normals point outward; merge shells that overlap each other (a
+    self-intersection left by exporting several parts as one mesh).  Each
+    change is appended to ``mesh.metadata['ambots_repairs']``.
+    """
+    notes = mesh.metadata.setdefault(REPAIRS_KEY, [])
+    n_face = len(mesh.faces)
+    mesh.merge_vertices(merge_tex=True, merge_norm=True)  # done by load_model too
+    mesh.update_faces(mesh.nondegenerate_faces())
+    mesh.update_faces(mesh.unique_faces())
+    mesh.remove_unreferenced_vertices()
+    if len(mesh.faces) < n_face:
+        notes.append("removed %d degenerate or duplicate triangles" % (n_face - len(mesh.faces)))
+    n_open = open_edge_count(mesh)
+    if n_open:
+        n_before = len(mesh.faces)
+        trimesh.repair.fill_holes(mesh)
+        if open_edge_count(mesh) < n_open:
+            notes.append("filled holes with %d triangles" % (len(mesh.faces) - n_before))
+    n_flip = _fix_orientation(mesh)
+    if n_flip:
+        notes.append("flipped %d triangles to make the normals point outward" % n_flip)
+    return _merge_overlapping_shells(mesh)
+
+
+def _fix_orientation(mesh):
+    """Make winding consistent and outward; return how many faces flipped."""
+    before = mesh.faces.copy()
+    trimesh.repair.fix_normals(mesh)
+    after = mesh.faces
+    if len(before) != len(after):
+        return 0
+    # a face is unchanged if it is the same cyclic sequence of vertices
+    same = np.zeros(len(after), dtype=bool)
+    for shift in range(3):
+        same |= (np.roll(before, shift, axis=1) == after).all(axis=1)
+    return int((~same).sum())
+
+
+def _merge_overlapping_shells(mesh):
+    """Union shells that overlap (a self-intersecting mesh); return the mesh.
+
+    Only closed, positive-volume shells are considered: a shell with a
+    negative volume is a cavity and must stay a separate surface."""
+    if not mesh.is_watertight or mesh.body_count < 2:
+        return mesh
+    shells = mesh.split(only_watertight=False)
+    volumes = np.array([s.volume for s in shells])
+    if (volumes <= 0).any():
+        return mesh
+    union = manifold3d.Manifold.batch_boolean([to_manifold(s) for s in shells],
+                                              manifold3d.OpType.Add)
+    overlap = volumes.sum() - union.volume()
+    if overlap <= 1e-6 * volumes.sum():
+        return mesh
+    merged = from_manifold(union)
+    merged.metadata.update(mesh.metadata)
+    merged.metadata[REPAIRS_KEY].append(
+        "self-intersection: %d shells overlap by %.3f mm^3; merged into one volume"
+        % (len(shells), overlap))
+    return merged
+
+
+# ------------------------------------------------------------- validation
+
+def open_edge_count(mesh):
+    """Number of edges used by exactly one triangle (boundary of a hole)."""
+    return len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
+
+
+def nonmanifold_edge_count(mesh):
+    """Number of edges shared by more than two triangles."""
+    _, counts = np.unique(mesh.edges_sorted, axis=0, return_counts=True)
+    return int((counts > 2).sum())
+
+
+def validate_mesh(mesh, name=None):
+    """Refuse a mesh that is not a closed, oriented volume.
+
+    Checks, in order: open edges, non-manifold edges, inconsistent winding,
+    zero volume, acceptance by manifold3d.  ``name`` defaults to the file
+    name recorded by :func:`load_model`.
+    """
+    name = name or source_name(mesh)
+    n_open = open_edge_count(mesh)
+    if n_open:
+        raise MeshError("%s: not a closed volume: %d open edges (edges of a hole, "
+                        "used by one triangle only)" % (name, n_open))
+    n_nonman = nonmanifold_edge_count(mesh)
+    if n_nonman:
+        raise MeshError("%s: not a closed volume: %d non-manifold edges (shared by "
+                        "more than two triangles)" % (name, n_nonman))
+    if not mesh.is_winding_consistent:
+        raise MeshError("%s: triangles are not consistently oriented" % name)
+    extent = float(np.max(mesh.extents)) if len(mesh.vertices) else 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):  # trimesh divides by it
+        volume = float(mesh.volume)
+    if not abs(volume) > 1e-9 * max(extent, 1e-12) ** 3:
+        raise MeshError("%s: zero volume (the mesh is flat or degenerate)" % name)
+    if volume < 0:
+        raise MeshError("%s: the normals point inward (negative volume %.3f mm^3)"
+                        % (name, volume))
+    to_manifold(mesh, name)  # raises when manifold3d does not accept it
+
+
+def source_name(mesh):
+    """The name used in messages for ``mesh`` (its file name when loaded)."""
+    return mesh.metadata.get(SOURCE_KEY, "model") if mesh.metadata else "model"
+
+
+# ------------------------------------------------------ placement and fit
+
+def place_on_bed(mesh, bed_center_xy_mm=(0.0, 0.0), bed_z_mm=0.0):
+    """A copy of ``mesh`` translated onto the bed.
+
+    The centre of the axis-aligned bounding box goes to ``bed_center_xy_mm``
+    in x and y, the lowest point to ``bed_z_mm`` (as the original project
+    placed models).  The metadata is kept.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+    bed_center_xy_mm : (2,) float
+    bed_z_mm : float
+
+    Returns
+    -------
+    placed : trimesh.Trimesh
+    """
+    lo, hi = mesh.bounds
+    target = np.array([bed_center_xy_mm[0], bed_center_xy_mm[1], bed_z_mm], dtype=float)
+    shift = target - np.array([(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0, lo[2]])
+    placed = mesh.copy()
+    placed.apply_translation(shift)
+    return placed
+
+
+def check_fits(mesh, bed_size_xy_mm, max_height_mm):
+    """Refuse a model larger than the bed or the printable height.
+
+    Only sizes are compared (use :func:`place_on_bed` for the position).
+    The message names every axis that overflows and by how much, e.g.
+    "model is 230.0 mm wide in x, bed is 200.0 mm: 30.0 mm too large".
+    """
+    size = mesh.extents
+    limits = (float(bed_size_xy_mm[0]), float(bed_size_xy_mm[1]), float(max_height_mm))
+    what = (("wide in x", "bed is"), ("deep in y", "bed is"), ("high", "maximum height is"))
+    errors = ["model is %.1f mm %s, %s %.1f mm: %.1f mm too large"
+              % (s, w, lim_name, lim, s - lim)
+              for s, lim, (w, lim_name) in zip(size, limits, what) if s > lim + 1e-9]
+    if errors:
+        raise MeshError("%s: does not fit: %s" % (source_name(mesh), "; ".join(errors)))
+
+
+# ------------------------------------------------------------- manifold3d
+
+def to_manifold(mesh, name=None):
+    """A :class:`manifold3d.Manifold` of ``mesh`` (float64 vertices).
+
+    Raises MeshError naming manifold3d's status when it refuses the mesh
+    (not an oriented 2-manifold, non-finite vertex...)."""
+    m = manifold3d.Manifold(manifold3d.Mesh64(
+        # copies: nanobind wants writeable C arrays, trimesh's may be read-only
+        vert_properties=np.array(mesh.vertices, dtype=np.float64, order="C"),
+        tri_verts=np.array(mesh.faces, dtype=np.uint64, order="C")))
+    status = m.status()
+    if status != manifold3d.Error.NoError:
+        raise MeshError("%s: not a valid closed volume for manifold3d (%s)"
+                        % (name or source_name(mesh), status.name))
+    return m
+
+
+def from_manifold(m):
+    """A :class:`trimesh.Trimesh` of a :class:`manifold3d.Manifold`."""
+    out = m.to_mesh64()
+    return trimesh.Trimesh(vertices=np.array(out.vert_properties[:, :3], dtype=np.float64),
+                           faces=np.array(out.tri_verts, dtype=np.int64), process=False)

@@ -1,0 +1,708 @@
+"""Slicing: a placed mesh (mm) -> G-code text, with two back ends.
+
+``builtin`` (the default) needs no external program; ``prusa`` runs the
+``prusa-slicer`` command line.  Both take the same :class:`SliceSettings`
+and write G-code in the model's own frame: a model placed with
+:func:`ambots.mesh.place_on_bed` keeps its x, y and z, so the G-code of the
+two back ends can be compared (and cut) in one frame.  Millimetres
+throughout: G-code is the mm boundary of the package (:mod:`ambots.units`).
+
+The built-in pipeline (:meth:`BuiltinSlicer.slice`) is a sequence of steps::
+
+    layers      layer_heights, slice_layers   mesh -> one outline per layer
+    regions     interior_regions, plan_island outline -> islands; the infill area
+                                              of each, split into solid and sparse
+    perimeters  perimeter_loops               inward offsets of the outline
+    infill      hatch, chain_lanes            clipped parallel lines, zig-zag lanes
+    ordering    order_islands                 island order, seams, directions
+    G-code      GcodeWriter                   travel, retraction, E, comments
+
+Geometry is done by manifold3d (slices, offsets, booleans on
+:class:`manifold3d.CrossSection`) and numpy (scan-line clipping, extrusion
+amounts, text formatting); no Python loop runs per point.
+"""
+import dataclasses
+import math
+import os
+import shutil
+import subprocess
+import tempfile
+from typing import NamedTuple, Optional
+
+import manifold3d
+import numpy as np
+
+import ambots
+from ambots.errors import AmbotsError, ConfigError
+from ambots.mesh import to_manifold, source_name
+
+#: G-code feature names, as PrusaSlicer writes them after ``;TYPE:``
+EXTERNAL_PERIMETER = "External perimeter"
+PERIMETER = "Perimeter"
+SOLID_INFILL = "Solid infill"
+SPARSE_INFILL = "Internal infill"
+
+#: config file of the ``prusa`` back end
+DEFAULT_PRUSA_INI = ambots.data_path("config", "prusa", "ambots_pla.ini")
+
+
+class SlicerError(AmbotsError):
+    """A model could not be sliced (nothing to print, external slicer failed...)."""
+
+
+# --------------------------------------------------------------- settings
+
+@dataclasses.dataclass(frozen=True)
+class SliceSettings:
+    """What both back ends print.  Lengths in mm, feedrates in mm/min.
+
+    The bead (one extruded line) is a rectangle with semicircular ends,
+    ``bead_width_mm`` wide and one layer high, as in Slic3r/PrusaSlicer:
+    see :meth:`bead_area_mm2` and :meth:`bead_spacing_mm`.
+    """
+    layer_height_mm: float = 0.2
+    first_layer_height_mm: float = 0.2
+    nozzle_diameter_mm: float = 0.4
+    bead_width_mm: float = 0.45
+    filament_diameter_mm: float = 1.75
+    perimeters: int = 2
+    #: sparse infill density, 0..1 (1 = solid)
+    infill_density: float = 0.2
+    #: direction of the infill lines of even layers; odd layers turn 90 deg
+    infill_angle_deg: float = 45.0
+    #: how far infill lines reach into the innermost perimeter (fraction of bead width)
+    infill_overlap: float = 0.15
+    top_solid_layers: int = 3
+    bottom_solid_layers: int = 3
+    perimeter_feedrate_mm_min: float = 2400.0
+    external_perimeter_feedrate_mm_min: float = 1800.0
+    infill_feedrate_mm_min: float = 4800.0
+    solid_infill_feedrate_mm_min: float = 2400.0
+    #: cap on every extrusion feedrate of the first layer
+    first_layer_feedrate_mm_min: float = 1200.0
+    travel_feedrate_mm_min: float = 7800.0
+    z_feedrate_mm_min: float = 720.0
+    retract_length_mm: float = 0.8
+    retract_feedrate_mm_min: float = 2100.0
+    #: travels shorter than this are not retracted
+    retract_min_travel_mm: float = 2.0
+    #: lift during retracted travels (0: none)
+    z_hop_mm: float = 0.0
+    #: nozzle temperature; None: the built-in back end writes no temperature
+    #: command and the prusa back end keeps the .ini's
+    nozzle_temperature_c: Optional[float] = None
+    #: outline simplification tolerance
+    resolution_mm: float = 0.0125
+
+    def __post_init__(self):
+        def need(ok, field, message):
+            if not ok:
+                raise ConfigError("SliceSettings", field, message)
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if v is None and f.name == "nozzle_temperature_c":
+                continue
+            need(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v),
+                 f.name, "must be a finite number, got %r" % (v,))
+        for name in ("layer_height_mm", "first_layer_height_mm", "nozzle_diameter_mm",
+                     "bead_width_mm", "filament_diameter_mm", "perimeter_feedrate_mm_min",
+                     "external_perimeter_feedrate_mm_min", "infill_feedrate_mm_min",
+                     "solid_infill_feedrate_mm_min", "first_layer_feedrate_mm_min",
+                     "travel_feedrate_mm_min", "z_feedrate_mm_min", "retract_feedrate_mm_min",
+                     "resolution_mm"):
+            need(getattr(self, name) > 0, name, "must be > 0, got %r" % getattr(self, name))
+        for name in ("perimeters", "top_solid_layers", "bottom_solid_layers"):
+            v = getattr(self, name)
+            need(int(v) == v and v >= 0, name, "must be a whole number >= 0, got %r" % v)
+        for name in ("retract_length_mm", "retract_min_travel_mm", "z_hop_mm"):
+            need(getattr(self, name) >= 0, name, "must be >= 0, got %r" % getattr(self, name))
+        need(0 <= self.infill_density <= 1, "infill_density",
+             "must be within 0..1, got %r" % self.infill_density)
+        need(0 <= self.infill_overlap <= 0.5, "infill_overlap",
+             "must be within 0..0.5, got %r" % self.infill_overlap)
+        for name in ("layer_height_mm", "first_layer_height_mm"):
+            need(getattr(self, name) <= self.bead_width_mm, name,
+                 "must not exceed bead_width_mm (%r)" % self.bead_width_mm)
+
+    def bead_area_mm2(self, height_mm):
+        """Cross-section of a bead of this width and ``height_mm``:
+        ``(w - h) h + pi (h/2)^2`` (Slic3r's flow model)."""
+        w, h = self.bead_width_mm, height_mm
+        return (w - h) * h + math.pi * (h / 2.0) ** 2
+
+    def bead_spacing_mm(self, height_mm):
+        """Distance between the centre lines of touching beads,
+        ``area / h = w - h (1 - pi/4)``: beads that far apart fill the layer."""
+        return self.bead_area_mm2(height_mm) / height_mm
+
+    @property
+    def filament_area_mm2(self):
+        """Cross-section of the filament, pi (d/2)^2."""
+        return math.pi * (self.filament_diameter_mm / 2.0) ** 2
+
+
+# ------------------------------------------------------------- interface
+
+def slice_mesh(mesh, settings=None, backend="builtin", **options):
+    """Slice ``mesh`` (mm, placed on the bed) and return the G-code text.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+      Closed volume in mm; z = 0 is the bed (nothing may lie below it).
+    settings : SliceSettings or None
+      ``None``: the defaults.
+    backend : str
+      ``"builtin"`` or ``"prusa"`` (see :data:`BACKENDS`).
+    options
+      Passed to the back end's constructor, e.g. ``ini_path=`` for prusa.
+    """
+    try:
+        cls = BACKENDS[backend]
+    except KeyError:
+        raise SlicerError("unknown slicer back end %r; available: %s"
+                          % (backend, ", ".join(sorted(BACKENDS)))) from None
+    return cls(settings, **options).slice(mesh)
+
+
+def _check_above_bed(mesh):
+    z_min = float(mesh.bounds[0][2])
+    if z_min < -1e-6:
+        raise SlicerError("%s: extends %.3f mm below the bed (z = 0); place it on the "
+                          "bed first (ambots.mesh.place_on_bed)" % (source_name(mesh), -z_min))
+
+
+# ========================================================= built-in slicer
+
+class Path(NamedTuple):
+    """One extrusion: a feature name and the (n, 2) points it joins, in mm.
+    A closed path (a perimeter loop) does not repeat its first point; the
+    printer goes round and back to it, starting wherever is nearest."""
+    feature: str
+    points: np.ndarray
+    closed: bool
+
+
+class BuiltinSlicer:
+    """Planar slicer in numpy and manifold3d: perimeters, rectilinear infill,
+    solid top and bottom layers, retraction.  No supports, skirt or gap fill."""
+
+    name = "builtin"
+
+    def __init__(self, settings=None):
+        self.settings = settings or SliceSettings()
+
+    def slice(self, mesh):
+        """G-code text (str) for ``mesh`` (trimesh.Trimesh, mm, on the bed)."""
+        s = self.settings
+        _check_above_bed(mesh)
+        solid = to_manifold(mesh)
+        # 1. layers: one outline per layer, cut at the middle of its height
+        z_tops, heights = layer_heights(float(mesh.bounds[1][2]), s)
+        outlines = slice_layers(solid, z_tops - heights / 2.0, s.resolution_mm)
+        if all(o.is_empty() for o in outlines):
+            raise SlicerError("%s: nothing to print at layer height %.3f mm (the model "
+                              "is thinner than a layer)" % (source_name(mesh), s.layer_height_mm))
+        # 2. regions: where each layer is covered above and below (-> sparse)
+        interiors = interior_regions(outlines, s.bottom_solid_layers, s.top_solid_layers)
+        writer = GcodeWriter(s, source_name(mesh))
+        for i, (z, h, outline, interior) in enumerate(zip(z_tops, heights, outlines, interiors)):
+            if outline.is_empty():
+                continue
+            angle = math.radians(s.infill_angle_deg + 90.0 * (i % 2))
+            islands = [plan_island(island, interior, h, angle, s)  # 3.-4. perimeters, infill
+                       for island in outline.decompose()]
+            writer.layer_change(z, h, first=(i == 0))
+            for paths in order_islands(islands, writer.xy):  # 5. ordering
+                for path in paths:
+                    writer.extrude(path, h)  # 6. G-code, with travel and retraction
+        return writer.finish()
+
+
+# ----------------------------------------------------------------- layers
+
+def layer_heights(z_max, settings):
+    """Layer tops and thicknesses from the bed (z = 0) up to ``z_max``.
+
+    The first layer is ``first_layer_height_mm`` thick, the others
+    ``layer_height_mm``; a layer exists while its middle is below ``z_max``.
+
+    Returns
+    -------
+    z_tops : (L,) float, mm
+    heights : (L,) float, mm
+    """
+    h0, h = settings.first_layer_height_mm, settings.layer_height_mm
+    n = max(int(math.ceil((z_max - h0) / h)) + 2, 1)  # enough layers, trimmed below
+    z_tops = h0 + h * np.arange(n)
+    heights = np.full(n, h)
+    heights[0] = h0
+    keep = z_tops - heights / 2.0 < z_max
+    return z_tops[keep], heights[keep]
+
+
+def slice_layers(solid, z_cuts, resolution_mm):
+    """Cross-sections of ``solid`` (manifold3d.Manifold) at heights ``z_cuts``
+    ((L,) mm), simplified to ``resolution_mm``: a list of L CrossSections."""
+    return [solid.slice(float(z)).simplify(resolution_mm) for z in z_cuts]
+
+
+# ---------------------------------------------------------------- regions
+
+def interior_regions(outlines, bottom_layers, top_layers):
+    """For each layer, the area covered by the ``bottom_layers`` layers below
+    it and the ``top_layers`` above it: infill there may be sparse, the rest
+    of the layer is within a solid skin.  A list of L CrossSections."""
+    n = len(outlines)
+    empty = manifold3d.CrossSection()
+    out = []
+    for i in range(n):
+        lo, hi = i - bottom_layers, i + top_layers
+        if lo < 0 or hi >= n:
+            out.append(empty)
+            continue
+        window = [outlines[j] for j in range(lo, hi + 1) if j != i]
+        out.append(manifold3d.CrossSection.batch_boolean(window, manifold3d.OpType.Intersect)
+                   if window else outlines[i])
+    return out
+
+
+def plan_island(island, interior, height, angle_rad, settings):
+    """Paths of one island (one outline with its holes) of a layer, in the
+    order of printing: perimeters from the innermost loop out to the
+    external one, then solid infill, then sparse infill.
+
+    Parameters
+    ----------
+    island : manifold3d.CrossSection
+    interior : manifold3d.CrossSection
+      Area of the layer covered by the layers above and below
+      (:func:`interior_regions`).
+    height : float, mm
+    angle_rad : float
+      Infill direction.
+
+    Returns
+    -------
+    groups : list of list of Path
+      Paths within one group may be reordered; groups keep their order.
+    """
+    s = settings
+    w, sp = s.bead_width_mm, s.bead_spacing_mm(height)
+    groups = perimeter_loops(island, w, sp, s.perimeters)[::-1]
+    # the perimeters fill the band out to (w - sp)/2 + P sp; infill lines stop
+    # half a bead spacing further in, minus the overlap
+    clip = island.offset(-((w - sp) / 2.0 + s.perimeters * sp + sp / 2.0
+                           - s.infill_overlap * w), manifold3d.JoinType.Miter)
+    if clip.is_empty():
+        return groups
+    solid = clip - interior
+    sparse = clip ^ interior
+    link_max = 2.0 * w  # shorter jumps between lines are extruded
+    for region, spacing, feature in ((solid, sp, SOLID_INFILL),
+                                     (sparse, sp / max(s.infill_density, 1e-9), SPARSE_INFILL)):
+        if region.is_empty() or (feature == SPARSE_INFILL and s.infill_density <= 0):
+            continue
+        segments = hatch(region.to_polygons(), angle_rad, spacing, min_length=w)
+        lines = chain_lanes(segments, link_max)
+        if lines:
+            groups.append([Path(feature, p, False) for p in lines])
+    return groups
+
+
+# ------------------------------------------------------------- perimeters
+
+def perimeter_loops(island, bead_width, spacing, count):
+    """Perimeter centre lines: inward offsets of ``island`` at ``w/2``,
+    ``w/2 + sp``, ... (``count`` of them, fewer where the part is thin).
+
+    Returns
+    -------
+    groups : list of list of Path
+      ``groups[k]`` holds the closed loops at offset k (the outline's and
+      its holes'); k = 0 is the external perimeter.
+    """
+    groups = []
+    for k in range(count):
+        ring = island.offset(-(bead_width / 2.0 + k * spacing), manifold3d.JoinType.Miter)
+        loops = [p for p in ring.to_polygons() if len(p) >= 3]
+        if not loops:
+            break
+        feature = EXTERNAL_PERIMETER if k == 0 else PERIMETER
+        groups.append([Path(feature, np.asarray(p, dtype=float), True) for p in loops])
+    return groups
+
+
+# ----------------------------------------------------------------- infill
+
+def hatch(polygons, angle_rad, spacing, min_length=0.0):
+    """Clip parallel lines to a region (vectorised scan-line fill).
+
+    The lines run along ``(cos a, sin a)``; line k lies at signed distance
+    ``(k + 1/2) spacing`` from the origin, so layers with the same angle
+    put their lines on the same grid.  Crossings of each line with the
+    contours are paired even-odd (a vertex on a line counts on the edge
+    that starts there going up, so the count is always even).
+
+    Parameters
+    ----------
+    polygons : list of (n_i, 2) float
+      Closed contours (outlines and holes), mm.
+    angle_rad : float
+    spacing : float, mm
+    min_length : float, mm
+      Shorter pieces are dropped.
+
+    Returns
+    -------
+    segments : (M, 2, 2) float
+      Start and end of each piece, mm, sorted by line then along the line.
+    line : (M,) int
+      Line index k of each piece.
+    """
+    polygons = [p for p in polygons if len(p) >= 3]
+    if not polygons:
+        return np.zeros((0, 2, 2)), np.zeros(0, dtype=int)
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    pts = np.concatenate(polygons)
+    sizes = np.array([len(p) for p in polygons])
+    starts = np.repeat(np.cumsum(sizes) - sizes, sizes)
+    nxt = starts + (np.arange(len(pts)) - starts + 1) % np.repeat(sizes, sizes)
+    u = pts @ np.array([c, s])        # along the lines
+    v = pts @ np.array([-s, c])       # across the lines
+    ua, va, ub, vb = u, v, u[nxt], v[nxt]
+    # lines k with v_k = (k + 1/2) spacing in [min(va, vb), max(va, vb))
+    k0 = np.ceil(np.minimum(va, vb) / spacing - 0.5).astype(np.int64)
+    k1 = np.ceil(np.maximum(va, vb) / spacing - 0.5).astype(np.int64)
+    count = k1 - k0
+    edge = np.repeat(np.arange(len(pts)), count)
+    first = np.repeat(np.cumsum(count) - count, count)
+    k = k0[edge] + np.arange(len(edge)) - first
+    t = ((k + 0.5) * spacing - va[edge]) / (vb[edge] - va[edge])
+    uk = ua[edge] + t * (ub[edge] - ua[edge])
+    order = np.lexsort((uk, k))
+    k, uk = k[order].reshape(-1, 2)[:, 0], uk[order].reshape(-1, 2)
+    keep = uk[:, 1] - uk[:, 0] > max(min_length, 1e-9)
+    k, uk = k[keep], uk[keep]
+    vk = (k + 0.5) * spacing
+    # back to x, y: p = u (c, s) + v (-s, c)
+    x = uk * c - vk[:, None] * s
+    y = uk * s + vk[:, None] * c
+    return np.stack([x, y], axis=-1), k
+
+
+def chain_lanes(hatched, link_max):
+    """Order clipped lines into zig-zag lanes and join them into polylines.
+
+    Consecutive lines with the same number of pieces form a run; piece j of
+    every line of a run is lane j.  Lanes are printed one after the other,
+    each as a zig-zag (every other line reversed); a jump shorter than
+    ``link_max`` between two lines is extruded, a longer one starts a new
+    polyline (the writer travels, retracting if it is long).
+
+    Parameters
+    ----------
+    hatched : ((M, 2, 2) float, (M,) int)
+      Output of :func:`hatch`.
+    link_max : float, mm
+
+    Returns
+    -------
+    polylines : list of (n_i, 2) float
+    """
+    segments, line = hatched
+    if len(segments) == 0:
+        return []
+    lines, first, per_line = np.unique(line, return_index=True, return_counts=True)
+    slot = np.arange(len(line)) - np.repeat(first, per_line)
+    new_run = np.ones(len(lines), dtype=bool)
+    new_run[1:] = (np.diff(lines) != 1) | (np.diff(per_line) != 0)
+    run = np.repeat(np.cumsum(new_run), per_line)
+    order = np.lexsort((line, slot, run))
+    flip = (line[order] % 2).astype(bool)
+    seg = segments[order]
+    seg[flip] = seg[flip, ::-1]
+    pts = seg.reshape(-1, 2)
+    gap = np.linalg.norm(seg[1:, 0] - seg[:-1, 1], axis=1)
+    breaks = np.flatnonzero(gap > link_max) + 1
+    return np.split(pts, 2 * breaks)
+
+
+# --------------------------------------------------------------- ordering
+
+def order_islands(islands, start_xy):
+    """Print order of a layer's islands and of the paths in each.
+
+    Islands go nearest first; within an island, groups keep their order.
+    The loops of a perimeter group are taken nearest first, each starting
+    at its vertex nearest the nozzle (the seam); infill polylines keep the
+    order of :func:`chain_lanes`, each starting at its nearer end.
+
+    Parameters
+    ----------
+    islands : list of list of list of Path (from :func:`plan_island`)
+    start_xy : (2,) float, mm
+
+    Yields
+    ------
+    paths : list of Path, one island at a time, ready to print
+    """
+    pos = np.asarray(start_xy, dtype=float)
+    todo = [isl for isl in islands if isl]
+    while todo:
+        island = todo.pop(int(np.argmin([_nearest(isl[0][0], pos)[1] for isl in todo])))
+        out = []
+        for group in island:
+            group = list(group)
+            while group:
+                j = 0
+                if group[0].closed and len(group) > 1:
+                    j = int(np.argmin([_nearest(p, pos)[1] for p in group]))
+                path = group.pop(j)
+                path = _start_at(path, _nearest(path, pos)[0])
+                out.append(path)
+                pos = path.points[0] if path.closed else path.points[-1]
+        yield out
+
+
+def _nearest(path, pos):
+    """(index of the start point nearest ``pos``, its distance)."""
+    if path.closed:
+        d = np.einsum("ij,ij->i", path.points - pos, path.points - pos)
+        i = int(np.argmin(d))
+        return i, math.sqrt(d[i])
+    d0 = np.hypot(*(path.points[0] - pos))
+    d1 = np.hypot(*(path.points[-1] - pos))
+    return (0, d0) if d0 <= d1 else (-1, d1)
+
+
+def _start_at(path, i):
+    if path.closed:
+        return path._replace(points=np.roll(path.points, -i, axis=0)) if i else path
+    return path._replace(points=path.points[::-1]) if i == -1 else path
+
+
+# ----------------------------------------------------------------- G-code
+
+class GcodeWriter:
+    """PrusaSlicer-style G-code: absolute XYZ, relative E (``M83``),
+    ``;LAYER_CHANGE``/``;Z:``/``;HEIGHT:`` and ``;TYPE:`` comments,
+    retraction before long travels and at layer changes."""
+
+    def __init__(self, settings, model_name="model"):
+        self.s = settings
+        self.xy = np.zeros(2)
+        self.z = 0.0
+        self.first_layer = True
+        self.feature = None
+        self.retracted = False
+        self.filament_mm = 0.0
+        self.layers = 0
+        s = settings
+        self.chunks = ["; generated by ambots %s (built-in slicer)\n; model: %s\n"
+                       % (ambots.__version__, model_name)]
+        self.chunks += ["; %s = %s\n" % (f.name, getattr(s, f.name))
+                        for f in dataclasses.fields(s)]
+        self.chunks.append("; bead width = %.3f mm, spacing = %.3f mm\n\n"
+                           % (s.bead_width_mm, s.bead_spacing_mm(s.layer_height_mm)))
+        self.chunks.append("G21 ; set units to millimeters\nG90 ; use absolute coordinates\n"
+                           "M83 ; use relative distances for extrusion\n")
+        if s.nozzle_temperature_c is not None:
+            self.chunks.append("M109 S%d ; set temperature and wait for it to be reached\n"
+                               % round(s.nozzle_temperature_c))
+        self.feeds = {EXTERNAL_PERIMETER: s.external_perimeter_feedrate_mm_min,
+                      PERIMETER: s.perimeter_feedrate_mm_min,
+                      SOLID_INFILL: s.solid_infill_feedrate_mm_min,
+                      SPARSE_INFILL: s.infill_feedrate_mm_min}
+
+    def layer_change(self, z, height, first=False):
+        """Start a layer whose top is at ``z`` (mm), ``height`` thick."""
+        self.first_layer = first
+        if self.filament_mm > 0:  # nothing to hold back before the first extrusion
+            self._retract()
+        self.z = float(z)
+        self.layers += 1
+        self.chunks.append(";LAYER_CHANGE\n;Z:%.3f\n;HEIGHT:%.3f\nG1 Z%.3f F%d\n"
+                           % (z, height, z, self.s.z_feedrate_mm_min))
+        self.feature = None
+
+    def extrude(self, path, height):
+        """Travel to the start of ``path`` and extrude along it."""
+        pts = path.points
+        if path.closed:
+            pts = np.concatenate([pts, pts[:1]])
+        lengths = np.hypot(*np.diff(pts, axis=0).T)
+        if (lengths <= 5e-4).any():  # below the printed resolution
+            pts = pts[np.concatenate([[True], lengths > 5e-4])]
+            lengths = np.hypot(*np.diff(pts, axis=0).T)
+        if len(lengths) == 0:
+            return
+        self.travel(pts[0])
+        if path.feature != self.feature:
+            self.chunks.append(";TYPE:%s\n;WIDTH:%.3f\n" % (path.feature, self.s.bead_width_mm))
+            self.feature = path.feature
+        feed = self.feeds[path.feature]
+        if self.first_layer:
+            feed = min(feed, self.s.first_layer_feedrate_mm_min)
+        e = lengths * (self.s.bead_area_mm2(height) / self.s.filament_area_mm2)
+        self.filament_mm += float(e.sum())
+        rows = np.column_stack([pts[1:], e]).ravel()
+        # one %-format for the whole path: the per-point loop runs in C
+        self.chunks.append("G1 F%d\n" % feed)
+        self.chunks.append(("G1 X%.3f Y%.3f E%.5f\n" * len(e)) % tuple(rows))
+        self.xy = pts[-1]
+
+    def travel(self, xy):
+        """Move to ``xy`` without extruding; retract first if it is long."""
+        s = self.s
+        dist = float(np.hypot(*(xy - self.xy)))
+        if dist > s.retract_min_travel_mm:
+            self._retract()
+        if dist > 1e-9:
+            if self.retracted and s.z_hop_mm > 0:
+                self.chunks.append("G1 Z%.3f F%d\n" % (self.z + s.z_hop_mm, s.z_feedrate_mm_min))
+            self.chunks.append("G1 X%.3f Y%.3f F%d\n" % (xy[0], xy[1], s.travel_feedrate_mm_min))
+            if self.retracted and s.z_hop_mm > 0:
+                self.chunks.append("G1 Z%.3f F%d\n" % (self.z, s.z_feedrate_mm_min))
+        self.xy = np.asarray(xy, dtype=float)
+        if self.retracted:
+            self.chunks.append("G1 E%.5f F%d\n" % (s.retract_length_mm, s.retract_feedrate_mm_min))
+            self.retracted = False
+
+    def _retract(self):
+        if not self.retracted and self.s.retract_length_mm > 0:
+            self.chunks.append("G1 E-%.5f F%d\n" % (self.s.retract_length_mm,
+                                                     self.s.retract_feedrate_mm_min))
+            self.retracted = True
+
+    def finish(self):
+        """The whole G-code text, with PrusaSlicer's filament summary."""
+        self._retract()
+        if self.s.nozzle_temperature_c is not None:
+            self.chunks.append("M104 S0 ; turn off temperature\n")
+        volume = self.filament_mm * self.s.filament_area_mm2
+        self.chunks.append("\n; total layers count = %d\n; filament used [mm] = %.2f\n"
+                           "; filament used [cm3] = %.2f\n"
+                           % (self.layers, self.filament_mm, volume / 1000.0))
+        return "".join(self.chunks)
+
+
+# ============================================================ prusa-slicer
+
+class PrusaSlicer:
+    """The ``prusa-slicer`` command line, run with an argument list (never a
+    shell string).
+
+    PrusaSlicer splits some path options at ``;``, so it never sees the
+    user's file names: it runs in a private temporary directory on copies
+    named ``config.ini`` and ``model.stl`` and writes ``model.gcode``, which
+    is then moved where it was asked.  Any file name works.
+
+    The model stays where it is (``--dont-arrange``, ``--no-ensure-on-bed``),
+    so its G-code is in the same frame as the built-in back end's.  Skirt
+    and brim are disabled (the built-in slicer prints neither; around a
+    piece of a shared print they would hit the neighbours).  The fields of
+    :class:`SliceSettings` override the ``.ini`` (``apply_settings=True``);
+    everything else (start G-code, temperatures...) comes from the ``.ini``.
+    """
+
+    name = "prusa"
+    #: names of the files inside the private directory
+    INI, STL, GCODE = "config.ini", "model.stl", "model.gcode"
+
+    def __init__(self, settings=None, ini_path=None, executable="prusa-slicer",
+                 timeout_s=600.0, apply_settings=True, extra_args=()):
+        self.settings = settings or SliceSettings()
+        self.ini_path = os.fspath(ini_path) if ini_path is not None else DEFAULT_PRUSA_INI
+        self.executable = executable
+        self.timeout_s = timeout_s
+        self.apply_settings = apply_settings
+        self.extra_args = [str(a) for a in extra_args]
+
+    def slice(self, mesh):
+        """G-code text (str) for ``mesh`` (trimesh.Trimesh, mm, on the bed)."""
+        _check_above_bed(mesh)
+        with tempfile.TemporaryDirectory(prefix="ambots-prusa-") as tmp:
+            mesh.export(os.path.join(tmp, self.STL))
+            self._run(tmp, source_name(mesh))
+            with open(os.path.join(tmp, self.GCODE)) as f:
+                return f.read()
+
+    def slice_file(self, stl_path, gcode_path):
+        """Slice the STL file ``stl_path`` into the file ``gcode_path``."""
+        stl_path, gcode_path = os.fspath(stl_path), os.fspath(gcode_path)
+        if not os.path.isfile(stl_path):
+            raise SlicerError("%s: no such file" % stl_path)
+        with tempfile.TemporaryDirectory(prefix="ambots-prusa-") as tmp:
+            shutil.copyfile(stl_path, os.path.join(tmp, self.STL))
+            self._run(tmp, os.path.basename(stl_path))
+            shutil.move(os.path.join(tmp, self.GCODE), gcode_path)
+
+    def command(self):
+        """The argument list, run in the private directory."""
+        cmd = [self.executable, "--loglevel", "1", "--export-gcode", "--load", self.INI,
+               "--dont-arrange", "--no-ensure-on-bed", "--skirts", "0", "--brim-width", "0"]
+        if self.apply_settings:
+            cmd += self.settings_args()
+        return cmd + self.extra_args + ["--output", self.GCODE, self.STL]
+
+    def settings_args(self):
+        """PrusaSlicer options equivalent to :attr:`settings` (speeds in mm/s)."""
+        s = self.settings
+        w = "%g" % s.bead_width_mm
+        args = {
+            "layer-height": s.layer_height_mm, "first-layer-height": s.first_layer_height_mm,
+            "nozzle-diameter": s.nozzle_diameter_mm, "filament-diameter": s.filament_diameter_mm,
+            "perimeters": s.perimeters, "top-solid-layers": s.top_solid_layers,
+            "bottom-solid-layers": s.bottom_solid_layers, "top-solid-min-thickness": 0,
+            "bottom-solid-min-thickness": 0, "fill-density": "%g%%" % (100 * s.infill_density),
+            "fill-pattern": "rectilinear", "fill-angle": s.infill_angle_deg,
+            "infill-overlap": "%g%%" % (100 * s.infill_overlap),
+            "perimeter-speed": s.perimeter_feedrate_mm_min / 60.0,
+            "external-perimeter-speed": s.external_perimeter_feedrate_mm_min / 60.0,
+            "infill-speed": s.infill_feedrate_mm_min / 60.0,
+            "solid-infill-speed": s.solid_infill_feedrate_mm_min / 60.0,
+            "top-solid-infill-speed": s.solid_infill_feedrate_mm_min / 60.0,
+            "first-layer-speed": s.first_layer_feedrate_mm_min / 60.0,
+            "travel-speed": s.travel_feedrate_mm_min / 60.0,
+            "retract-length": s.retract_length_mm,
+            "retract-speed": s.retract_feedrate_mm_min / 60.0,
+            "retract-before-travel": s.retract_min_travel_mm, "retract-lift": s.z_hop_mm,
+        }
+        for key in ("extrusion-width", "first-layer-extrusion-width",
+                    "perimeter-extrusion-width", "external-perimeter-extrusion-width",
+                    "infill-extrusion-width", "solid-infill-extrusion-width",
+                    "top-infill-extrusion-width"):
+            args[key] = w
+        if s.nozzle_temperature_c is not None:
+            args["temperature"] = args["first-layer-temperature"] = round(s.nozzle_temperature_c)
+        out = ["--use-relative-e-distances"]
+        for key, value in args.items():
+            out += ["--" + key, value if isinstance(value, str) else "%g" % value]
+        return out
+
+    def _run(self, tmp, name):
+        """Run prusa-slicer in ``tmp`` (holding model.stl); raise SlicerError
+        with the tail of its output when it fails."""
+        if shutil.which(self.executable) is None:
+            raise SlicerError("%s: %r not found; install PrusaSlicer (apt install "
+                              "prusa-slicer) or use the builtin back end" % (name, self.executable))
+        if not os.path.isfile(self.ini_path):
+            raise SlicerError("%s: PrusaSlicer config %s does not exist" % (name, self.ini_path))
+        shutil.copyfile(self.ini_path, os.path.join(tmp, self.INI))
+        try:
+            proc = subprocess.run(self.command(), cwd=tmp, capture_output=True, text=True,
+                                  timeout=self.timeout_s, check=False)
+        except subprocess.TimeoutExpired:
+            raise SlicerError("%s: prusa-slicer did not finish within %g s"
+                              % (name, self.timeout_s)) from None
+        if proc.returncode != 0 or not os.path.isfile(os.path.join(tmp, self.GCODE)):
+            lines = [ln for ln in (proc.stderr + proc.stdout).splitlines()
+                     if ln.strip() and "[trace]" not in ln]
+            tail = "\n".join(lines[-10:]).replace(self.INI, self.ini_path).replace(self.STL, name)
+            raise SlicerError("%s: prusa-slicer failed (exit status %d):\n%s"
+                              % (name, proc.returncode, tail))
+
+
+#: back ends by name, for :func:`slice_mesh` and the command line
+BACKENDS = {BuiltinSlicer.name: BuiltinSlicer, PrusaSlicer.name: PrusaSlicer}

@@ -1,0 +1,239 @@
+"""Model input: formats, repair, refusals, placement (ambots.mesh)."""
+import os
+
+import manifold3d as m3
+import numpy as np
+import pytest
+import trimesh
+
+from ambots.errors import MeshError
+from ambots.mesh import (check_fits, from_manifold, load_model, place_on_bed,
+                         to_manifold)
+
+
+# four shapes (mm), built at test time: no binary fixture in the repository
+def cube():
+    return trimesh.creation.box((20.0, 20.0, 20.0))
+
+
+def cylinder():
+    return trimesh.creation.cylinder(radius=8.0, height=12.0, sections=48)
+
+
+def overhang():  # a T: the bar overhangs the stem
+    return from_manifold(m3.Manifold.cube([6, 6, 10]).translate([-3, -3, 0])
+                         + m3.Manifold.cube([24, 6, 4]).translate([-12, -3, 10]))
+
+
+def hole_through():
+    return from_manifold(m3.Manifold.cube([24, 24, 8], True)
+                         - m3.Manifold.cylinder(12, 5, 5, 48, True))
+
+
+MODELS = {"cube": cube, "cylinder": cylinder, "overhang": overhang, "hole": hole_through}
+FORMATS = {"stl-binary": ("stl", "stl"), "stl-ascii": ("stl", "stl_ascii"),
+           "obj": ("obj", "obj"), "ply": ("ply", "ply"), "3mf": ("3mf", "3mf")}
+
+
+def write(path, mesh, file_type=None):
+    mesh.export(str(path), file_type=file_type)
+    return str(path)
+
+
+def refusal(path, **kwargs):
+    """The MeshError message of loading ``path``; it must name the file."""
+    with pytest.raises(MeshError) as info:
+        load_model(path, **kwargs)
+    message = str(info.value)
+    assert os.path.basename(str(path)) in message
+    return message
+
+
+# ------------------------------------------------------------------ formats
+
+@pytest.mark.parametrize("fmt", sorted(FORMATS))
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_round_trip_in_every_format(tmp_path, name, fmt):
+    ext, file_type = FORMATS[fmt]
+    original = MODELS[name]()
+    path = write(tmp_path / ("model." + ext), original, file_type)
+    if fmt == "stl-ascii":
+        assert open(path, "rb").read(5) == b"solid"
+    if fmt == "stl-binary":
+        assert os.path.getsize(path) == 84 + 50 * len(original.faces)
+    mesh = load_model(path)
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    assert mesh.volume == pytest.approx(original.volume, rel=1e-5)
+    np.testing.assert_allclose(mesh.bounds, original.bounds, atol=1e-4)
+    assert mesh.metadata["ambots_source"] == "model." + ext
+
+
+def test_scale_converts_to_millimetres(tmp_path):
+    path = write(tmp_path / "inches.obj", trimesh.creation.box((1.0, 2.0, 0.5)))
+    mesh = load_model(path, scale=25.4)
+    np.testing.assert_allclose(mesh.extents, [25.4, 50.8, 12.7])
+    assert "scale" in refusal(path, scale=-1.0)
+
+
+# ------------------------------------------------------------------- repair
+
+def test_flipped_faces_are_fixed(tmp_path):
+    box = cube()
+    faces = box.faces.copy()
+    faces[[0, 4, 7]] = faces[[0, 4, 7], ::-1]
+    path = write(tmp_path / "flipped.stl", trimesh.Trimesh(box.vertices, faces, process=False))
+    mesh = load_model(path)
+    assert mesh.is_winding_consistent
+    assert mesh.volume == pytest.approx(8000.0)
+    assert any("flipped 3 triangles" in note for note in mesh.metadata["ambots_repairs"])
+    assert "not consistently oriented" in refusal(path, repair=False)
+
+
+def test_inside_out_mesh_is_turned_outward(tmp_path):
+    box = cube()
+    path = write(tmp_path / "inverted.ply",
+                 trimesh.Trimesh(box.vertices, box.faces[:, ::-1], process=False))
+    assert load_model(path).volume == pytest.approx(8000.0)
+    assert "normals point inward" in refusal(path, repair=False)
+
+
+def test_missing_face_is_filled(tmp_path):
+    box = cube()
+    path = write(tmp_path / "missing.stl",
+                 trimesh.Trimesh(box.vertices, box.faces[1:], process=False))
+    mesh = load_model(path)
+    assert mesh.is_watertight and len(mesh.faces) == 12
+    assert mesh.volume == pytest.approx(8000.0)
+    assert "not a closed volume: 3 open edges" in refusal(path, repair=False)
+
+
+def test_large_hole_is_refused_with_the_open_edge_count(tmp_path):
+    tube = cylinder()          # 48 sections: the top cap is bounded by 48 edges
+    top = tube.face_normals[:, 2] > 0.99
+    path = write(tmp_path / "open top.stl",
+                 trimesh.Trimesh(tube.vertices, tube.faces[~top], process=False))
+    message = refusal(path)
+    assert "not a closed volume: 48 open edges" in message
+
+
+def test_overlapping_shells_are_merged(tmp_path):
+    a, b = cube(), cube()
+    b.apply_translation((10.0, 0.0, 0.0))   # overlaps a by half: a self-intersecting mesh
+    path = write(tmp_path / "two parts.stl", trimesh.util.concatenate([a, b]))
+    mesh = load_model(path)
+    assert mesh.volume == pytest.approx(12000.0)
+    assert mesh.body_count == 1
+    assert any("self-intersection" in note for note in mesh.metadata["ambots_repairs"])
+
+
+def test_a_cavity_stays_a_cavity(tmp_path):
+    outer = trimesh.creation.box((20.0, 20.0, 20.0))
+    inner = trimesh.creation.box((10.0, 10.0, 10.0))
+    inner.invert()
+    path = write(tmp_path / "hollow.stl", trimesh.util.concatenate([outer, inner]))
+    assert load_model(path).volume == pytest.approx(8000.0 - 1000.0)
+
+
+# ----------------------------------------------------------------- refusals
+
+def test_empty_file(tmp_path):
+    path = tmp_path / "empty.stl"
+    path.write_bytes(b"")
+    assert "file is empty" in refusal(path)
+
+
+@pytest.mark.parametrize("ext", ["stl", "obj", "ply", "3mf"])
+def test_random_bytes(tmp_path, ext):
+    path = tmp_path / ("noise." + ext)
+    path.write_bytes(np.random.default_rng(1).bytes(3001))
+    message = refusal(path)
+    assert "not a readable" in message or "contains no triangles" in message
+
+
+@pytest.mark.parametrize("ext", ["stl", "obj", "ply", "3mf"])
+def test_text_file(tmp_path, ext):
+    path = tmp_path / ("notes." + ext)
+    path.write_text("Shopping list:\n- filament\n- nozzles\n")
+    message = refusal(path)
+    assert "not a readable" in message or "contains no triangles" in message
+
+
+def test_unknown_extension_and_missing_file(tmp_path):
+    path = write(tmp_path / "model.step", cube(), "stl")
+    assert "unknown model format '.step'" in refusal(path)
+    assert "no such file" in refusal(tmp_path / "absent.stl")
+
+
+def test_zero_volume(tmp_path):
+    # a closed tetrahedron whose four corners lie in one plane
+    corners = np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0], [10, 10, 0]], dtype=float)
+    faces = [[0, 1, 2], [1, 3, 2], [0, 2, 3], [0, 3, 1]]
+    path = write(tmp_path / "flat.stl", trimesh.Trimesh(corners, faces, process=False))
+    assert "zero volume" in refusal(path)
+
+
+@pytest.mark.parametrize("bad", ["nan", "inf"])
+def test_non_finite_vertices(tmp_path, bad):
+    path = tmp_path / "broken.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 %s\n" % bad
+                    + "f 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    assert "1 vertices have NaN or infinite coordinates" in refusal(path)
+
+
+def test_triangle_limit(tmp_path):
+    stl = write(tmp_path / "big.stl", cube())          # checked from the binary header
+    obj = write(tmp_path / "big.obj", cube())          # checked after reading
+    for path in (stl, obj):
+        assert "12 triangles, more than the limit of 10" in refusal(path, max_triangles=10)
+    assert len(load_model(stl, max_triangles=12).faces) == 12
+
+
+def test_every_refusal_is_a_mesh_error_not_a_traceback(tmp_path):
+    for i, content in enumerate([b"\x00" * 84, b"solid x\nfacet normal 0 0 1\n", b"\xff" * 200]):
+        path = tmp_path / ("odd%d.stl" % i)
+        path.write_bytes(content)
+        refusal(path)
+
+
+# ---------------------------------------------------------- placement, fit
+
+def test_place_on_bed_centres_the_bounding_box():
+    mesh = overhang()
+    mesh.apply_translation((7.0, -3.0, 5.0))
+    placed = place_on_bed(mesh, bed_center_xy_mm=(100.0, 50.0), bed_z_mm=2.0)
+    lo, hi = placed.bounds
+    np.testing.assert_allclose((lo[:2] + hi[:2]) / 2.0, [100.0, 50.0])
+    assert lo[2] == pytest.approx(2.0)
+    np.testing.assert_allclose(placed.extents, mesh.extents)
+    assert mesh.bounds[0][2] == pytest.approx(5.0)        # the input is not moved
+    np.testing.assert_allclose(place_on_bed(mesh).bounds[0], [-12.0, -3.0, 0.0])
+
+
+def test_check_fits_says_by_how_much():
+    wide = trimesh.creation.box((230.0, 20.0, 10.0))
+    with pytest.raises(MeshError, match=r"model is 230\.0 mm wide in x, bed is 200\.0 mm: "
+                                        r"30\.0 mm too large"):
+        check_fits(wide, (200.0, 200.0), 100.0)
+    tall = trimesh.creation.box((20.0, 250.0, 120.0))
+    with pytest.raises(MeshError) as info:
+        check_fits(tall, (200.0, 200.0), 100.0)
+    assert "250.0 mm deep in y, bed is 200.0 mm: 50.0 mm too large" in str(info.value)
+    assert "120.0 mm high, maximum height is 100.0 mm: 20.0 mm too large" in str(info.value)
+    check_fits(cube(), (20.0, 20.0), 20.0)   # exactly fits
+
+
+# --------------------------------------------------------------- manifold3d
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_manifold_round_trip(name):
+    mesh = MODELS[name]()
+    solid = to_manifold(mesh)
+    assert solid.volume() == pytest.approx(mesh.volume, rel=1e-9)
+    back = from_manifold(solid)
+    assert back.is_watertight and back.volume == pytest.approx(mesh.volume, rel=1e-9)
+
+
+def test_to_manifold_refuses_an_open_mesh():
+    box = cube()
+    with pytest.raises(MeshError, match="NotManifold"):
+        to_manifold(trimesh.Trimesh(box.vertices, box.faces[1:], process=False))
