@@ -220,6 +220,7 @@ class Bed:
     size: Tuple[float, float, float]   #: x, y, thickness (m)
     xyz: Tuple[float, float, float]    #: centre of the top surface in world (m)
     rpy: Tuple[float, float, float]
+    max_height: float = 0.15           #: printable height above the top surface (m)
 
     @property
     def pose(self):
@@ -267,7 +268,8 @@ def load_cell(path, min_base_distance=0.25):
     if min(size) <= 0:
         raise ConfigError(path, "bed.size", "every dimension must be > 0, got %r" % (size,))
     bed_pose = bed.sub("pose")
-    the_bed = Bed(size, bed_pose.vec("xyz", 3), bed_pose.vec("rpy", 3, (0.0, 0.0, 0.0)))
+    the_bed = Bed(size, bed_pose.vec("xyz", 3), bed_pose.vec("rpy", 3, (0.0, 0.0, 0.0)),
+                  bed.num("max_height", 0.15, positive=True))
     arms, names, ids = [], set(), set()
     for a in r.items("arms"):
         name = a.str("name")

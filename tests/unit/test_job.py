@@ -1,0 +1,77 @@
+"""The slice pipeline end to end: model file -> per-arm programs on disk."""
+import json
+import subprocess
+import sys
+
+import manifold3d as m3
+import pytest
+import trimesh
+
+from ambots.config import default_cell_path, load_cell
+from ambots.errors import MeshError
+from ambots.gcode import Segment, read_gcode, summarize_file
+from ambots.job import run_job, write_job
+
+
+@pytest.fixture(scope="module")
+def cell():
+    return load_cell(default_cell_path())
+
+
+@pytest.fixture(scope="module")
+def cube_stl(tmp_path_factory):
+    path = tmp_path_factory.mktemp("models") / "cube 40 'mm'.stl"
+    trimesh.creation.box([40, 40, 10]).export(str(path))
+    return str(path)
+
+
+def slice_cli(*args):
+    return subprocess.run([sys.executable, "-m", "ambots", "slice", *args], capture_output=True, text=True)
+
+
+@pytest.mark.parametrize("slicer, mode", [("builtin", "concurrent"), ("prusa", "sequential")])
+def test_slice_writes_one_program_and_part_per_arm(tmp_path, cube_stl, slicer, mode):
+    out = tmp_path / "out"
+    r = slice_cli(cube_stl, "--slicer", slicer, "--mode", mode, "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    assert "kinova   R1" in r.stdout and "ur10     R2" in r.stdout
+    summary = json.loads((out / "job.json").read_text())
+    assert summary["mode"] == mode and summary["slicer"] == slicer
+    vols = []
+    for arm in ("kinova", "ur10"):
+        info = summarize_file(str(out / (arm + ".gcode")))      # reads without error
+        assert info["layers"] == 50 and info["extruded_filament_mm"] > 0
+        part = trimesh.load(str(out / (arm + ".stl")))
+        vols.append(part.volume)
+        # every extrusion stays on the arm's side of the seam (+- one bead)
+        xs = [x for ev in read_gcode(str(out / (arm + ".gcode")))
+              if type(ev) is Segment and ev.extrude and ev.start != ev.end for x in (ev.start[0], ev.end[0])]
+        if arm == "kinova":
+            assert max(xs) <= 0.45 and min(xs) >= -20.45
+        else:
+            assert min(xs) >= -0.45 and max(xs) <= 20.45
+    assert sum(vols) == pytest.approx(40 * 40 * 10, rel=1e-3)
+
+
+def test_one_arm_alone_prints_everything(tmp_path, cube_stl, cell):
+    job = run_job(cube_stl, cell, arms=[cell.arm("ur10")])
+    summary = write_job(job, str(tmp_path))
+    assert list(summary["arms"]) == ["ur10"]
+    assert summary["arms"]["ur10"]["part_volume_mm3"] == pytest.approx(16000, rel=1e-6)
+    assert not any(l.startswith("A9") for l in job.programs["ur10"].lines)
+
+
+def test_a_model_larger_than_the_bed_is_refused_saying_by_how_much(tmp_path, cell):
+    big = tmp_path / "big.stl"
+    trimesh.creation.box([350, 100, 10]).export(str(big))
+    with pytest.raises(MeshError, match=r"350\.0 mm wide in x, bed is 300\.0 mm: 50\.0 mm too large"):
+        run_job(str(big), cell)
+    r = slice_cli(str(big), "--out", str(tmp_path / "o"))
+    assert r.returncode == 2 and "50.0 mm too large" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_unknown_arm_and_missing_file_are_clear_errors(tmp_path, cube_stl):
+    r = slice_cli(cube_stl, "--arms", "panda", "--out", str(tmp_path))
+    assert r.returncode == 2 and "unknown arm 'panda'" in r.stderr
+    r = slice_cli(str(tmp_path / "nope.stl"), "--out", str(tmp_path))
+    assert r.returncode == 2 and "nope.stl" in r.stderr and "Traceback" not in r.stderr
