@@ -1,0 +1,207 @@
+"""Reliable delivery over lossy topics: sequence numbers, acknowledgements,
+retries and duplicate suppression, shared by every node that speaks the
+A-series protocol (hub, firmware, front end).
+
+- :class:`Sender` numbers outgoing messages (``S<node> Q<seq>``), keeps each
+  until an A8 acknowledges it, and :meth:`Sender.due` says what to transmit
+  again: the timeout starts at ``initial_timeout`` and is multiplied by
+  ``backoff`` after every try, up to ``max_timeout``; after ``max_tries``
+  transmissions it gives up (``None``: never).
+- :class:`Receiver` answers every numbered message with an A8 (duplicates
+  too) and says whether to execute it, so that each (sender, Q) takes effect
+  at most once.  Per sender it keeps the highest Q seen and a bitmap of the
+  ``window`` numbers below it (the anti-replay window of IPsec, RFC 4303
+  3.4.3): messages may arrive in any order within the window, and memory is
+  ``window`` bits per sender.  A number older than the window cannot be
+  told apart from a duplicate; it is acknowledged but not executed
+  (:attr:`Verdict.STALE`), and the caller should report it.
+
+Q wraps at 2**32; numbers are compared in serial-number arithmetic (RFC 1982).
+No clock is read here: every call that depends on time takes ``now``
+(seconds, from whatever clock the caller uses consistently).
+"""
+from dataclasses import dataclass, replace
+from enum import Enum
+from typing import Any, Optional
+
+from ambots.protocol import HUB, MAX_U32, Ack
+
+SEQ_MODULUS = MAX_U32 + 1
+_HALF = SEQ_MODULUS // 2
+
+
+def seq_after(seq, n=1):
+    """The sequence number ``n`` after ``seq`` (wrapping)."""
+    return (seq + n) % SEQ_MODULUS
+
+
+def seq_diff(a, b):
+    """``a - b`` in serial-number arithmetic, in [-2**31, 2**31)."""
+    return (a - b + _HALF) % SEQ_MODULUS - _HALF
+
+
+def seq_seed(wall_time):
+    """A first Q for a node starting at ``wall_time`` (s since the epoch):
+    the wall clock in ms.  A restarted node then numbers above its
+    predecessor (if that one sent less than one message per ms on average
+    and started less than 24 days earlier), so receivers that still remember
+    the old numbers do not take the new messages for duplicates."""
+    return int(wall_time * 1000) % SEQ_MODULUS
+
+
+@dataclass
+class Outgoing:
+    """A numbered message waiting for its acknowledgement."""
+    message: Any          #: the message as transmitted (its ``sender`` and ``seq`` set)
+    destination: int      #: node id that must acknowledge it
+    tries: int            #: transmissions so far
+    timeout: float        #: s to wait after the last transmission
+    due: float            #: when to transmit again (the caller's clock)
+
+    @property
+    def seq(self):
+        return self.message.seq
+
+
+class Sender:
+    """Numbers the messages node ``node_id`` sends and retries them until
+    acknowledged.  Memory: one :class:`Outgoing` per unacknowledged message,
+    each dropped after ``max_tries`` transmissions (keep it finite for bounded
+    memory when a destination may be gone for good)."""
+
+    def __init__(self, node_id, first_seq=0, initial_timeout=0.2, backoff=2.0, max_timeout=2.0,
+                 max_tries=None):
+        if not 0 < initial_timeout <= max_timeout:
+            raise ValueError("need 0 < initial_timeout <= max_timeout, got %r, %r"
+                             % (initial_timeout, max_timeout))
+        if backoff < 1:
+            raise ValueError("backoff must be >= 1, got %r" % backoff)
+        if max_tries is not None and max_tries < 1:
+            raise ValueError("max_tries must be >= 1 or None (retry forever), got %r" % max_tries)
+        self.node_id = node_id
+        self.initial_timeout, self.backoff, self.max_timeout = initial_timeout, backoff, max_timeout
+        self.max_tries = max_tries
+        self._next_seq = first_seq % SEQ_MODULUS
+        self._pending = {}       # seq -> Outgoing, in sending order
+
+    @property
+    def pending(self):
+        """The unacknowledged messages, oldest first."""
+        return tuple(self._pending.values())
+
+    def send(self, message, destination, now):
+        """Number ``message`` (S = this node, Q = the next number), keep it
+        until node ``destination`` acknowledges it, and return the
+        :class:`Outgoing` whose ``message`` the caller transmits now."""
+        if isinstance(message, Ack):
+            raise ValueError("an A8 is never numbered nor retried")
+        seq = self._next_seq
+        self._next_seq = seq_after(seq)
+        out = Outgoing(replace(message, sender=self.node_id, seq=seq), destination, 1,
+                       self.initial_timeout, now + self.initial_timeout)
+        self._pending[seq] = out
+        return out
+
+    def acknowledge(self, ack, acker=None):
+        """Settle the message that the A8 ``ack`` acknowledges.  ``acker`` is
+        the node id the ack really comes from (default: its S word); an ack
+        from a node other than the message's destination does not count.
+        Returns the settled :class:`Outgoing`, or None (not addressed to this
+        node, unknown or already settled Q, wrong acker)."""
+        if ack.robot != self.node_id:
+            return None
+        acker = ack.sender if acker is None else acker
+        out = self._pending.get(ack.acked_seq)
+        if out is None or (acker is not None and acker != out.destination):
+            return None
+        del self._pending[ack.acked_seq]
+        return out
+
+    def due(self, now, on_give_up=None):
+        """The messages to transmit again at ``now`` (their tries, timeout
+        and due time already advanced).  A message whose last try has timed
+        out after ``max_tries`` transmissions is dropped and passed to
+        ``on_give_up(outgoing)``."""
+        resend = []
+        for seq, out in list(self._pending.items()):
+            if out.due > now:
+                continue
+            if self.max_tries is not None and out.tries >= self.max_tries:
+                del self._pending[seq]
+                if on_give_up is not None:
+                    on_give_up(out)
+                continue
+            out.tries += 1
+            out.timeout = min(out.timeout * self.backoff, self.max_timeout)
+            out.due = now + out.timeout
+            resend.append(out)
+        return resend
+
+
+class Verdict(Enum):
+    """What a receiver does with one incoming message."""
+    NEW = "new"                 #: first time: acknowledge and execute
+    DUPLICATE = "duplicate"     #: executed before: acknowledge again, do not execute
+    STALE = "stale"             #: older than the window: acknowledge, do not execute, report
+    UNNUMBERED = "unnumbered"   #: no Q (original design, or an A8): execute, no acknowledgement
+
+
+@dataclass(frozen=True)
+class Delivery:
+    """A receiver's answer: the verdict and the A8 to send back (or None)."""
+    verdict: Verdict
+    ack: Optional[Ack]
+
+    @property
+    def execute(self):
+        """Whether the message should take effect now."""
+        return self.verdict in (Verdict.NEW, Verdict.UNNUMBERED)
+
+
+class _Window:
+    """Highest Q seen from one sender, and bit i set = Q ``top - i`` seen."""
+    __slots__ = ("top", "seen")
+
+    def __init__(self, top):
+        self.top, self.seen = top, 1
+
+
+class Receiver:
+    """Acknowledges and deduplicates the numbered messages node ``node_id``
+    receives.  One window of ``window`` bits per sender id: the caller bounds
+    the senders (e.g. to the registered nodes)."""
+
+    def __init__(self, node_id, window=4096):
+        if window < 1:
+            raise ValueError("window must be >= 1, got %r" % window)
+        self.node_id, self.window = node_id, window
+        self._windows = {}      # sender id -> _Window
+
+    def receive(self, message, sender=None):
+        """The :class:`Delivery` for ``message``.  ``sender`` is the node id
+        it really comes from (default: its S word, else the hub, as in
+        :func:`ambots.protocol.ack`); the A8 is addressed to it."""
+        seq = getattr(message, "seq", None)       # an A8 has no seq: never acknowledged
+        if seq is None:
+            return Delivery(Verdict.UNNUMBERED, None)
+        if sender is None:
+            sender = HUB if message.sender is None else message.sender
+        return Delivery(self._admit(sender, seq), Ack(sender, seq, self.node_id))
+
+    def _admit(self, sender, seq):
+        w = self._windows.get(sender)
+        if w is None:
+            self._windows[sender] = _Window(seq)
+            return Verdict.NEW
+        ahead = seq_diff(seq, w.top)
+        if ahead > 0:
+            w.seen = 1 if ahead >= self.window else ((w.seen << ahead) | 1) & ((1 << self.window) - 1)
+            w.top = seq
+            return Verdict.NEW
+        if -ahead >= self.window:
+            return Verdict.STALE
+        bit = 1 << -ahead
+        if w.seen & bit:
+            return Verdict.DUPLICATE
+        w.seen |= bit
+        return Verdict.NEW

@@ -1,0 +1,190 @@
+"""Reliable delivery (ambots.reliable): numbering, acknowledgements, retries
+with capped backoff, giving up, duplicate and reordering handling, bounded
+memory, and exactly-once over a lossy, reordering channel.  Fake clock."""
+import random
+
+import pytest
+
+from ambots.protocol import HUB, MAX_U32, Ack, Pause, Start, Status, decode, encode
+from ambots.reliable import Receiver, Sender, Verdict, seq_after, seq_diff, seq_seed
+
+
+# --- sequence arithmetic --------------------------------------------------------
+
+def test_sequence_numbers_wrap_and_compare_across_the_wrap():
+    assert seq_after(MAX_U32) == 0 and seq_after(5, 3) == 8
+    assert seq_diff(0, MAX_U32) == 1 and seq_diff(MAX_U32, 0) == -1
+    assert seq_diff(10, 3) == 7 and seq_diff(3, 10) == -7
+
+
+def test_seed_is_the_wall_clock_in_ms_wrapped():
+    assert seq_seed(1.5) == 1500
+    assert 0 <= seq_seed(1.7e9) <= MAX_U32
+    assert seq_seed(1000.0) > seq_seed(999.0)
+
+
+# --- Sender -------------------------------------------------------------------------
+
+def test_sender_numbers_messages_with_its_id_and_consecutive_q():
+    s = Sender(0, first_seq=MAX_U32)
+    a = s.send(Start(1), destination=1, now=0.0)
+    b = s.send(Pause(2, sender=7, seq=99), destination=2, now=0.0)
+    assert encode(a.message) == "A1 R1 S0 Q%d" % MAX_U32
+    assert (b.message.sender, b.message.seq) == (0, 0)          # S/Q replaced, Q wrapped
+    assert [o.seq for o in s.pending] == [MAX_U32, 0]
+
+
+def test_acks_settle_only_the_right_message_from_the_right_node():
+    s = Sender(0)
+    out = s.send(Start(1), destination=1, now=0.0)
+    assert s.acknowledge(Ack(5, out.seq, 1)) is None             # addressed to node 5
+    assert s.acknowledge(Ack(0, out.seq + 1, 1)) is None         # unknown Q
+    assert s.acknowledge(Ack(0, out.seq, 2)) is None             # node 2 may not ack node 1's message
+    assert s.acknowledge(Ack(0, out.seq, 2), acker=1) is out     # the authenticated acker counts
+    assert s.pending == ()
+    assert s.acknowledge(Ack(0, out.seq, 1)) is None             # already settled
+    assert s.due(100.0) == []
+
+
+def test_retries_back_off_doubling_up_to_the_cap_until_acked():
+    s = Sender(0, initial_timeout=0.25, backoff=2.0, max_timeout=3.0)
+    out = s.send(Start(1), destination=1, now=0.0)
+    sent_at, now = [], 0.0
+    while now < 13.0:
+        now += 0.25                                   # exact in binary: no rounding surprises
+        if s.due(now):
+            sent_at.append(now)
+    # timeouts 0.25, 0.5, 1, 2, then 3 (capped)
+    assert sent_at == [0.25, 0.75, 1.75, 3.75, 6.75, 9.75, 12.75]
+    assert out.tries == 8 and out.timeout == 3.0
+    assert s.due(12.75) == []                         # nothing due twice
+    s.acknowledge(Ack(0, out.seq, 1))
+    assert s.due(1000.0) == []
+
+
+def test_retransmission_is_the_same_text():
+    s = Sender(0)
+    out = s.send(Start(1), destination=1, now=0.0)
+    [again] = s.due(0.2)
+    assert again is out and encode(again.message) == encode(out.message)
+
+
+def test_gives_up_after_max_tries_and_reports_it():
+    s = Sender(0, initial_timeout=1.0, backoff=1.0, max_timeout=1.0, max_tries=3)
+    out = s.send(Start(1), destination=1, now=0.0)
+    given_up = []
+    resent = [len(s.due(t, on_give_up=given_up.append)) for t in (1.0, 2.0, 3.0)]
+    assert resent == [1, 1, 0] and given_up == [out] and s.pending == ()
+
+
+def test_retries_forever_when_max_tries_is_none():
+    s = Sender(0, initial_timeout=1.0, backoff=1.0, max_timeout=1.0, max_tries=None)
+    out = s.send(Start(1), destination=1, now=0.0)
+    for t in range(1, 1001):
+        assert s.due(float(t)) == [out]
+    assert out.tries == 1001
+
+
+def test_an_ack_is_never_numbered():
+    with pytest.raises(ValueError):
+        Sender(0).send(Ack(1, 2), destination=1, now=0.0)
+
+
+@pytest.mark.parametrize("kwargs", [dict(initial_timeout=0), dict(initial_timeout=3.0),
+                                    dict(backoff=0.5), dict(max_tries=0)])
+def test_sender_rejects_bad_timing(kwargs):
+    with pytest.raises(ValueError):
+        Sender(0, **kwargs)
+
+
+# --- Receiver -------------------------------------------------------------------------
+
+def test_every_numbered_message_is_acked_and_executed_once():
+    r = Receiver(1)
+    first = r.receive(decode("A1 R1 S0 Q7"))
+    assert first.verdict is Verdict.NEW and first.execute
+    assert encode(first.ack) == "A8 R0 Q7 S1"
+    again = r.receive(decode("A1 R1 S0 Q7"))
+    assert again.verdict is Verdict.DUPLICATE and not again.execute
+    assert again.ack == first.ack                                   # duplicates are re-acked
+
+
+def test_unnumbered_messages_and_acks_execute_without_an_ack():
+    r = Receiver(1)
+    for text in ("A1 R1", "A8 R1 Q3 S0"):
+        d = r.receive(decode(text))
+        assert d.verdict is Verdict.UNNUMBERED and d.execute and d.ack is None
+
+
+def test_sender_defaults_to_the_s_word_then_the_hub_and_can_be_given():
+    r = Receiver(1)
+    assert r.receive(decode("A1 R1 Q4")).ack == Ack(HUB, 4, 1)
+    assert r.receive(decode("A1 R1 S1000 Q4")).ack == Ack(1000, 4, 1)
+    assert r.receive(decode("A1 R1 Q4"), sender=1000).verdict is Verdict.DUPLICATE
+
+
+def test_senders_have_separate_windows():
+    r = Receiver(0)
+    assert r.receive(Start(1, sender=1, seq=3)).execute
+    assert r.receive(Start(1, sender=2, seq=3)).execute
+    assert not r.receive(Start(1, sender=2, seq=3)).execute
+
+
+def test_reordering_within_the_window_executes_each_once():
+    r = Receiver(1)
+    order = [5, 3, 9, 4, 3, 6, 9, 8, 7, 5]
+    verdicts = [r.receive(Start(1, sender=0, seq=q)).verdict for q in order]
+    new, dup = Verdict.NEW, Verdict.DUPLICATE
+    assert verdicts == [new, new, new, new, dup, new, dup, new, new, dup]
+
+
+def test_reordering_across_the_wrap():
+    r = Receiver(1)
+    assert r.receive(Start(1, sender=0, seq=1)).execute
+    assert r.receive(Start(1, sender=0, seq=MAX_U32)).execute      # just before 1
+    assert r.receive(Start(1, sender=0, seq=0)).execute
+    assert not r.receive(Start(1, sender=0, seq=MAX_U32)).execute
+
+
+def test_older_than_the_window_is_acked_but_not_executed():
+    r = Receiver(1, window=8)
+    r.receive(Start(1, sender=0, seq=100))
+    d = r.receive(Start(1, sender=0, seq=92))
+    assert d.verdict is Verdict.STALE and not d.execute and d.ack == Ack(0, 92, 1)
+    assert r.receive(Start(1, sender=0, seq=93)).verdict is Verdict.NEW
+
+
+def test_memory_is_the_window_per_sender():
+    r = Receiver(1, window=64)
+    for q in range(0, 100000, 7):
+        r.receive(Start(1, sender=0, seq=q))
+    r.receive(Start(1, sender=0, seq=2 ** 31 - 1))                 # a far jump ahead
+    assert all(w.seen.bit_length() <= 64 for w in r._windows.values())
+
+
+# --- both ends over a bad channel ------------------------------------------------------
+
+def test_exactly_once_over_a_lossy_reordering_channel():
+    """30% of messages and of acks are lost, the rest arrive in random order
+    and sometimes twice; every message takes effect exactly once."""
+    rng = random.Random(4)
+    sender, receiver = Sender(0, first_seq=MAX_U32 - 20, max_tries=None), Receiver(1)
+    executed = []
+    for i in range(200):
+        sender.send(Status(1, 1, i, 0, 0.0), destination=1, now=0.0)
+    in_flight = [o.message for o in sender.pending]
+    now = 0.0
+    while sender.pending:
+        rng.shuffle(in_flight)
+        for msg in in_flight:
+            for _ in range(rng.choice((1, 1, 2))):
+                if rng.random() < 0.3:
+                    continue
+                d = receiver.receive(msg)
+                if d.execute:
+                    executed.append(msg.layer)
+                if rng.random() >= 0.3:
+                    sender.acknowledge(d.ack)
+        now += 0.1
+        in_flight = [o.message for o in sender.due(now)]
+    assert sorted(executed) == list(range(200))
