@@ -1,7 +1,6 @@
 """Model input: formats, repair, refusals, placement (ambots.mesh)."""
 import os
 
-import manifold3d as m3
 import numpy as np
 import pytest
 import trimesh
@@ -11,26 +10,7 @@ from ambots.mesh import (check_fits, from_manifold, load_model, place_on_bed,
                          to_manifold)
 
 
-# four shapes (mm), built at test time: no binary fixture in the repository
-def cube():
-    return trimesh.creation.box((20.0, 20.0, 20.0))
-
-
-def cylinder():
-    return trimesh.creation.cylinder(radius=8.0, height=12.0, sections=48)
-
-
-def overhang():  # a T: the bar overhangs the stem
-    return from_manifold(m3.Manifold.cube([6, 6, 10]).translate([-3, -3, 0])
-                         + m3.Manifold.cube([24, 6, 4]).translate([-12, -3, 10]))
-
-
-def hole_through():
-    return from_manifold(m3.Manifold.cube([24, 24, 8], True)
-                         - m3.Manifold.cylinder(12, 5, 5, 48, True))
-
-
-MODELS = {"cube": cube, "cylinder": cylinder, "overhang": overhang, "hole": hole_through}
+from shapes import MODELS, cube, cylinder, overhang  # tests/unit/shapes.py
 FORMATS = {"stl-binary": ("stl", "stl"), "stl-ascii": ("stl", "stl_ascii"),
            "obj": ("obj", "obj"), "ply": ("ply", "ply"), "3mf": ("3mf", "3mf")}
 

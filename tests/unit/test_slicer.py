@@ -7,7 +7,6 @@ import os
 import re
 import shutil
 
-import manifold3d as m3
 import numpy as np
 import pytest
 import shapely
@@ -15,7 +14,7 @@ import trimesh
 
 from ambots.errors import ConfigError
 from ambots.gcode import Segment, parse_gcode_text, summarize
-from ambots.mesh import from_manifold, place_on_bed
+from ambots.mesh import place_on_bed
 from ambots.slicer import (DEFAULT_PRUSA_INI, BuiltinSlicer, PrusaSlicer, SliceSettings,
                            SlicerError, hatch, layer_heights, slice_mesh)
 
@@ -23,26 +22,7 @@ SETTINGS = SliceSettings()
 W = SETTINGS.bead_width_mm
 
 
-# the four shapes of test_mesh.py, placed on the bed (mm)
-def cube():
-    return trimesh.creation.box((20.0, 20.0, 20.0))
-
-
-def cylinder():
-    return trimesh.creation.cylinder(radius=8.0, height=12.0, sections=48)
-
-
-def overhang():  # a T: the bar overhangs the stem on both sides
-    return from_manifold(m3.Manifold.cube([6, 6, 10]).translate([-3, -3, 0])
-                         + m3.Manifold.cube([24, 6, 4]).translate([-12, -3, 10]))
-
-
-def hole_through():
-    return from_manifold(m3.Manifold.cube([24, 24, 8], True)
-                         - m3.Manifold.cylinder(12, 5, 5, 48, True))
-
-
-MODELS = {"cube": cube, "cylinder": cylinder, "overhang": overhang, "hole": hole_through}
+from shapes import MODELS, cube, overhang  # tests/unit/shapes.py
 NAMES = sorted(MODELS)
 
 
