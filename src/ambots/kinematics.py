@@ -189,6 +189,7 @@ class ArmKinematics:
                 zaxis = bool(np.allclose(s.axis, (0, 0, 1)))
                 self._plan.append((s.origin, qi, s.axis, zaxis if s.kind != "prismatic" else None))
                 qi += 1
+        self._movable = [p for p in self._plan if p[1] is not None]
         self._kdl = None
 
     @classmethod
@@ -261,7 +262,7 @@ class ArmKinematics:
             J = np.empty((N, 6, self.dof))
             tip = T[:, :3, 3]
             for k, ((origin, qi, axis, zaxis), z, p) in enumerate(
-                    zip([p for p in self._plan if p[1] is not None], axes, points)):
+                    zip(self._movable, axes, points)):
                 if zaxis is None:
                     J[:, :3, k] = z
                     J[:, 3:, k] = 0.0

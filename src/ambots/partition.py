@@ -159,7 +159,7 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
     return parts
 
 
-def _check_reach(cell, part, heights_above=0.0):
+def _check_reach(cell, part):
     from ambots.model import arm_kinematics
     from ambots.workspace import down_in_base, world_to_base
     if part.empty:
