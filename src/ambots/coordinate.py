@@ -11,11 +11,15 @@ the *seam zone*; arms that share a seam get different colours (greedy graph
 colouring), and each layer is split into one phase per colour: in phase p
 the arms of colour p print their seam-zone moves while the others print
 their moves away from every seam.  At the end of every phase each arm waits
-(A9 ... N<line>) until every other arm has completed the last line of its
+(``;@A9 ... N<line>``) until every other arm has completed the last line of its
 own work for that phase, so nozzles never work on both sides of a seam at
 once and a slow arm holds the others at the next barrier instead of being
 run into.  Barriers name exact lines of the other arm's program, which the
 builder knows because it writes every program.
+
+Coordination commands are directive lines (``;@A9 R1 W2 N120``, see
+:mod:`ambots.program`): comments to any other reader, executed by the
+firmware at that point of the program.
 
 Programs are canonical G-code re-emitted from the reader's segments
 (absolute XYZ, relative E, mm and mm/min in the bed frame), with PrusaSlicer
@@ -29,8 +33,8 @@ from typing import Dict, List
 import numpy as np
 
 from ambots.gcode import Segment, parse_gcode_text
-from ambots.program import sanitize_gcode
-from ambots.protocol import MoveTo, Start, WaitFor, encode
+from ambots.program import directive, sanitize_gcode
+from ambots.protocol import MoveTo, Start, WaitFor
 
 __all__ = ["ArmProgram", "build_programs", "park_positions_mm", "DEFAULT_ZONE_MM"]
 
@@ -41,8 +45,8 @@ DEFAULT_ZONE_MM = 60.0
 
 @dataclass
 class ArmProgram:
-    """One arm's program.  ``lines`` are G-code/A-series lines without line
-    breaks; line numbers are 1-based positions in ``lines``."""
+    """One arm's program.  ``lines`` are G-code and directive lines without
+    line breaks; line numbers are 1-based positions in ``lines``."""
     arm: object
     mode: str
     lines: List[str] = field(default_factory=list)
@@ -165,7 +169,7 @@ def _finish(w, arm, park):
         w.emit("G1 E-%.5f F%.0f" % (w.retract_mm, w.retract_feed))
         w.emit("G0 Z%.3f F%.0f" % (w.pos[2] + 10.0, w.travel_feed))
     x, y, z = park[arm.name]
-    w.emit(encode(MoveTo(arm.id, round(float(x), 3), round(float(y), 3), round(float(z), 3))))
+    w.emit(directive(MoveTo(arm.id, round(float(x), 3), round(float(y), 3), round(float(z), 3))))
 
 
 def _sequential(arms, read, park, n_layers):
@@ -178,14 +182,14 @@ def _sequential(arms, read, park, n_layers):
         if i == 0:     # the first arm moves every other arm out of the way
             for other in arms[1:]:
                 x, y, z = park[other.name]
-                w.emit(encode(MoveTo(other.id, round(float(x), 3), round(float(y), 3), round(float(z), 3))))
+                w.emit(directive(MoveTo(other.id, round(float(x), 3), round(float(y), 3), round(float(z), 3))))
         for k in sorted(layers):
             w.emit(";LAYER_CHANGE")
             w.emit(";Z:%.3f" % layers[k][-1].end[2])
             w.segments(layers[k])
         _finish(w, arm, park)
         if i + 1 < len(arms):
-            w.emit(encode(Start(arms[i + 1].id)))
+            w.emit(directive(Start(arms[i + 1].id)))
         programs[arm.name] = ArmProgram(arm, "sequential", w.lines, removed, len(layers), 1, start_first=(i == 0))
     return programs
 
@@ -260,7 +264,7 @@ def _concurrent(arms, parts, read, park, n_layers, zone_mm):
             for p in range(k_phases):
                 for other in arms:
                     if other is not a:
-                        w.lines[next(slots)] = encode(WaitFor(a.id, other.id, line=step_end[other.name, k, p]))
+                        w.lines[next(slots)] = directive(WaitFor(a.id, other.id, line=step_end[other.name, k, p]))
         removed, layers = read[a.name]
         programs[a.name] = ArmProgram(a, "concurrent", w.lines, removed, n_layers, k_phases, start_first=True)
     return programs

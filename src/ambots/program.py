@@ -1,16 +1,56 @@
-"""Per-arm program builder: the safety gate between user G-code and arms.
+"""Per-arm programs: the safety gate between user G-code and arms, and the
+directive lines that carry coordination inside a program.
 
 G-code from a user or a slicer must never carry an A-series command (start,
 move, load chunk... see :mod:`ambots.protocol`) into an arm, by accident or
 on purpose.  :func:`sanitize_gcode` strips or rejects such lines unless the
 caller explicitly trusts the file, and says which lines it removed.
+
+Coordination that must happen at an exact point of an arm's program (wait
+at a barrier, park an arm, start the next arm) is written by the program
+builder as a *directive*: an A-series message in a comment that starts with
+``;@`` (``;@A9 R1 W2 N120``).  To any other G-code reader it is a comment;
+an ambots firmware executes it when it reaches that line of a chunk it was
+given by A5.  Directives are ours only: the sanitiser strips them from
+untrusted G-code like bare A-series lines.
 """
 from typing import Iterable, List, Tuple, Union
 
-from ambots.errors import GCodeError
+from ambots.errors import GCodeError, ProtocolError
 from ambots.gcode import is_a_series_line
 
 MODES = ("strip", "reject")
+#: prefix of a directive line
+DIRECTIVE = ";@"
+
+
+def directive(message):
+    """A protocol message -> its directive line (``;@A9 R1 W2 N120``)."""
+    from ambots.protocol import encode
+    text = encode(message)
+    if "\n" in text:
+        raise ProtocolError(text, "a directive is one line (A5 cannot be a directive)")
+    return DIRECTIVE + text
+
+
+def is_directive(line):
+    """True if ``line`` (one line of G-code) is a directive line."""
+    return line.lstrip(" \t").startswith(DIRECTIVE)
+
+
+def parse_directive(line, path="<string>", lineno=0):
+    """A directive line -> its protocol message; a malformed one raises
+    :class:`~ambots.errors.GCodeError` naming ``path`` and ``lineno``."""
+    from ambots.protocol import decode
+    body = line.lstrip(" \t")[len(DIRECTIVE):].rstrip("\r")
+    try:
+        return decode(body)
+    except ProtocolError as exc:
+        raise GCodeError(path, lineno, line, "bad directive: %s" % exc.message)
+
+
+def _unsafe(line):
+    return is_a_series_line(line) or is_directive(line)
 
 
 def sanitize_gcode(lines_or_text: Union[str, Iterable[str]], path="<string>", trusted=False,
@@ -44,7 +84,7 @@ def sanitize_gcode(lines_or_text: Union[str, Iterable[str]], path="<string>", tr
     else:
         kept, removed = [], []
         for number, line in enumerate(lines, 1):
-            if is_a_series_line(line):
+            if _unsafe(line):
                 removed.append((number, line))
             else:
                 kept.append(line)

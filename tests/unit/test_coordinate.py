@@ -59,8 +59,8 @@ def run(programs, rng, zone_check=None):
         progressed = False
         for n in sorted(active, key=lambda n: clock[n]):
             text = lines[n][done[n]]
-            if text.startswith("A9"):
-                cmd = decode(text)
+            if text.startswith(";@A9"):
+                cmd = decode(text[2:])
                 other = ids[cmd.other]
                 if done[other] < cmd.line:
                     continue
@@ -92,7 +92,7 @@ def test_concurrent_seam_zone_is_taken_in_turns(cell, job):
         # step of every line: layer k phase p = step 2k + p (counted by barrier groups)
         step_of, step, prev_a9 = {}, 0, False
         for i, line in enumerate(prog.lines, start=1):
-            is_a9 = line.startswith("A9")
+            is_a9 = line.startswith(";@A9")
             if prev_a9 and not is_a9:
                 step += 1
             step_of[i], prev_a9 = step, is_a9
@@ -113,7 +113,7 @@ def test_concurrent_programs_never_deadlock_and_barriers_hold(cell, job, seed):
     programs = build_programs(sliced, parts, cell, mode="concurrent", zone_mm=20.0)
     run(programs, random.Random(seed))
     for prog in programs.values():     # one barrier per other arm after each of 8 steps
-        waits = [decode(l) for l in prog.lines if l.startswith("A9")]
+        waits = [decode(l[2:]) for l in prog.lines if l.startswith(";@A9")]
         assert len(waits) == 8 and all(isinstance(w, WaitFor) and w.robot == prog.arm.id for w in waits)
         assert [w.line for w in waits] == sorted(w.line for w in waits)
 
@@ -123,9 +123,9 @@ def test_sequential_is_the_original_hand_over(cell, job):
     programs = build_programs(sliced, parts, cell, mode="sequential")
     kinova, ur10 = programs["kinova"], programs["ur10"]
     assert kinova.start_first and not ur10.start_first
-    a_lines = [decode(l) for l in kinova.lines if l.startswith("A")]
+    a_lines = [decode(l[2:]) for l in kinova.lines if l.startswith(";@")]
     assert isinstance(a_lines[0], MoveTo) and a_lines[0].robot == 2          # park the UR10 first
     assert isinstance(a_lines[-2], MoveTo) and a_lines[-2].robot == 1        # then park itself
     assert a_lines[-1] == Start(2)                                            # and start the UR10
-    assert [type(decode(l)) for l in ur10.lines if l.startswith("A")] == [MoveTo]
+    assert [type(decode(l[2:])) for l in ur10.lines if l.startswith(";@")] == [MoveTo]
     assert extrusions(ur10.text) == extrusions(sliced["ur10"].replace("A1 R2 ; must be stripped", ""))

@@ -58,7 +58,7 @@ def test_one_arm_alone_prints_everything(tmp_path, cube_stl, cell):
     summary = write_job(job, str(tmp_path))
     assert list(summary["arms"]) == ["ur10"]
     assert summary["arms"]["ur10"]["part_volume_mm3"] == pytest.approx(16000, rel=1e-6)
-    assert not any(l.startswith("A9") for l in job.programs["ur10"].lines)
+    assert not any(l.startswith(";@A9") for l in job.programs["ur10"].lines)
 
 
 def test_a_model_larger_than_the_bed_is_refused_saying_by_how_much(tmp_path, cell):

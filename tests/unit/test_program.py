@@ -65,3 +65,23 @@ def test_sanitized_random_files_never_reach_the_reader_with_a_series():
             n_read += 1
             assert not any(type(ev) is Command and ev.code.startswith("A") for ev in evs), line
     assert n_removed > 300 and n_read > 1000
+
+
+def test_directive_round_trip_and_sanitiser_strips_it():
+    from ambots.program import directive, is_directive, parse_directive
+    from ambots.protocol import WaitFor
+    line = directive(WaitFor(1, 2, line=120))
+    assert line == ";@A9 R1 W2 N120" and is_directive("  " + line)
+    assert parse_directive(line) == WaitFor(1, 2, line=120)
+    # a comment to every other G-code reader
+    from ambots.gcode import parse_gcode_text
+    assert not [e for e in parse_gcode_text("G1 X1 F600\n" + line + "\n") if type(e).__name__ != "Segment"]
+    clean, removed = sanitize_gcode("G1 X1\n" + line + "\n;@A1 R2\n; ordinary comment\n")
+    assert clean == "G1 X1\n; ordinary comment\n" and [n for n, _ in removed] == [2, 3]
+
+
+def test_malformed_directive_names_file_and_line():
+    from ambots.program import parse_directive
+    with pytest.raises(GCodeError) as e:
+        parse_directive(";@A9 R1 W1 N3", "arm.gcode", 42)
+    assert e.value.path == "arm.gcode" and e.value.line == 42 and "wait for itself" in str(e.value)
