@@ -12,7 +12,10 @@ from typing import Dict, List
 
 from ambots.units import m_to_mm
 
-__all__ = ["Job", "prepare_model", "split", "slice_parts", "coordinate", "run_job", "write_job"]
+#: the model of the menu's "start demo" and of ``make demo`` (package-relative)
+DEMO_MODEL = "config/models/demo_cube.stl"
+
+__all__ = ["DEMO_MODEL", "Job", "prepare_model", "split", "slice_parts", "coordinate", "run_job", "write_job"]
 
 
 @dataclass
