@@ -1,0 +1,490 @@
+"""Capsule collision model of the arms: clearance between two arms, to the
+print bed and to the part printed so far.
+
+Every link of our arm models carries a cylinder as both visual and collision
+geometry (``ambots_cylinder`` in ``urdf/common.xacro``).  Each collision
+cylinder becomes a *capsule*: a segment on the cylinder's axis plus its
+radius.  The segment's endpoints are inset by ``min(radius, length / 2)`` from
+the flat ends, so the capsule never reaches past them (the nozzle link's
+cylinder stops 5 mm short of the tip, and so does its capsule); it bulges out
+sideways only where the rounded caps meet the rim, i.e. it lies inside the
+cylinder except for a cylinder shorter than its diameter, which becomes a
+ball of its radius.
+
+API (metres, radians; N configurations, C capsules of one arm):
+
+* :class:`ArmBody` -- ``ArmBody.from_arm(arm)`` (an
+  :class:`~ambots.config.ArmInstance`, or a bare profile standing at the
+  world origin); ``body.capsules(Q)`` -> ``(A, B, radii)``: endpoints
+  (N, C, 3) in the world frame for joint vectors ``Q`` (N, n); attributes
+  ``names`` (C,) link names (without the arm prefix), ``radii`` (C,),
+  ``link_index`` (C,) index of each capsule's frame in
+  :meth:`~ambots.kinematics.ArmKinematics.link_frames`.
+* :func:`segment_distance` -- closest distance between segments, broadcast.
+* :func:`capsule_distances` -- (N, C1, C2) surface distances of two capsule sets.
+* :func:`clearance_between` -- (N,) clearance of two arms at N simultaneous
+  configurations.
+* :func:`box_clearance` -- (N,) clearance of capsules to an axis-aligned box.
+* :func:`bed_clearance` -- (N,) clearance of an arm to the bed slab.
+* :func:`part_clearance` -- (N,) clearance of an arm to the part printed so far
+  (a world axis-aligned box, e.g. :meth:`ambots.deposit.Deposit.bounds`).
+* :func:`seam_zone` / :func:`seam_zone_mm` -- the seam-zone width of the
+  concurrent schedule (:mod:`ambots.coordinate`) from the arms' geometry.
+
+A *clearance* is a surface-to-surface distance: positive apart, zero touching,
+negative overlapping (minus the depth of the deepest segment point inside the
+other body, minus the radius).  Self-collision is not modelled.
+"""
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from typing import Dict, NamedTuple, Tuple
+
+import numpy as np
+
+from ambots.config import ArmInstance, pose_matrix
+from ambots.errors import KinematicsError, UnreachableError
+
+__all__ = ["ArmBody", "segment_distance", "capsule_distances", "clearance_between", "box_clearance",
+           "bed_clearance", "part_clearance", "SeamZone", "seam_zone", "seam_zone_mm"]
+
+#: capsule pairs evaluated at once by :func:`capsule_distances` (bounds memory)
+_CHUNK_PAIRS = 1 << 18
+#: golden-section iterations of :func:`box_clearance`: 0.618**45 < 5e-10
+_GOLDEN_ITERS = 45
+
+
+# --------------------------------------------------------------- helpers
+def _dot(a, b):
+    return np.einsum("...i,...i->...", a, b)
+
+
+def _cross(a, b):
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+                     a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+
+
+def _transform(T, X):
+    """Apply a 4x4 transform ``T`` to points ``X`` (..., 3)."""
+    return X @ T[:3, :3].T + T[:3, 3]
+
+
+def _floats(text, n, what):
+    try:
+        v = [float(x) for x in (text or "").split()] if text is not None else [0.0] * n
+    except ValueError:
+        v = []
+    if len(v) != n or not np.all(np.isfinite(v)):
+        raise KinematicsError("%s: expected %d finite numbers, got %r" % (what, n, text))
+    return v
+
+
+# ------------------------------------------------------------ arm model
+def _collision_capsule(link, col):
+    """(a, b, radius) in the link frame of one <collision> element."""
+    where = "link %r collision" % link
+    geom = col.find("geometry")
+    shape = geom[0] if geom is not None and len(geom) else None
+    if shape is None or shape.tag not in ("cylinder", "sphere"):
+        raise KinematicsError("%s: %s geometry is not supported (cylinders and spheres only)"
+                              % (where, "no" if shape is None else shape.tag))
+    r = _floats(shape.get("radius"), 1, where + " radius")[0]
+    length = _floats(shape.get("length"), 1, where + " length")[0] if shape.tag == "cylinder" else 0.0
+    if r <= 0 or length < 0:
+        raise KinematicsError("%s: radius must be > 0 and length >= 0, got %g, %g" % (where, r, length))
+    origin = col.find("origin")
+    xyz = _floats(None if origin is None else origin.get("xyz"), 3, where + " origin xyz")
+    rpy = _floats(None if origin is None else origin.get("rpy"), 3, where + " origin rpy")
+    T = pose_matrix(xyz, rpy)
+    half = length / 2 - min(r, length / 2)
+    return T[:3, 3] - half * T[:3, 2], T[:3, 3] + half * T[:3, 2], r
+
+
+def _parse_capsules(urdf_xml, chain):
+    """Capsules of every collision element of a URDF whose links all belong
+    to ``chain``: (names, link_index, a_local, b_local, radii)."""
+    try:
+        root = ET.fromstring(urdf_xml.encode() if isinstance(urdf_xml, str) else urdf_xml)
+    except ET.ParseError as exc:
+        raise KinematicsError("malformed URDF: %s" % exc) from None
+    index = {chain.base: 0}
+    index.update({s.link: i + 1 for i, s in enumerate(chain.segments)})
+    names, idx, a, b, r = [], [], [], [], []
+    for link in root.findall("link"):
+        name = link.get("name")
+        for col in link.findall("collision"):
+            if name not in index:
+                raise KinematicsError("link %r has collision geometry but is not on the chain %s -> %s"
+                                      % (name, chain.base, chain.tip))
+            ca, cb, cr = _collision_capsule(name, col)
+            names.append(name)
+            idx.append(index[name])
+            a.append(ca)
+            b.append(cb)
+            r.append(cr)
+    if not names:
+        raise KinematicsError("the URDF has no collision geometry on the chain %s -> %s" % (chain.base, chain.tip))
+    return np.array(names), np.array(idx), np.array(a), np.array(b), np.array(r)
+
+
+class ArmBody:
+    """The capsules of one arm.
+
+    Parameters
+    ----------
+    kin : :class:`~ambots.kinematics.ArmKinematics` built from ``urdf_xml``
+    urdf_xml : the arm's URDF (string); every link with collision geometry
+        must be on ``kin``'s chain
+    base_pose : (4, 4) pose of the chain's base link in the world frame
+    name : the arm's instance name (for messages)
+    """
+
+    def __init__(self, kin, urdf_xml, base_pose=None, name=""):
+        self.kin = kin
+        self.name = name
+        self.base_pose = np.eye(4) if base_pose is None else np.asarray(base_pose, dtype=float)
+        self.names, self.link_index, self._a, self._b, self.radii = _parse_capsules(urdf_xml, kin.chain)
+
+    @classmethod
+    def from_arm(cls, arm):
+        """From an :class:`~ambots.config.ArmInstance` (placed at its base pose)
+        or a bare :class:`~ambots.config.ArmProfile` (base at the world origin)."""
+        from ambots.kinematics import ArmKinematics
+        from ambots.model import arm_urdf
+        instance = isinstance(arm, ArmInstance)
+        profile = arm.profile if instance else arm
+        urdf = arm_urdf(profile)
+        kin = ArmKinematics.from_urdf(urdf, base=profile.base_link, tip=profile.tool_link)
+        return cls(kin, urdf, arm.base_pose if instance else None, arm.name)
+
+    def __len__(self):
+        return len(self.names)
+
+    def mask(self, skip=()):
+        """Bool (C,): capsules whose link is not in ``skip`` (link names without
+        prefix; an unknown name raises ``ValueError``)."""
+        unknown = set(skip) - set(self.names)
+        if unknown:
+            raise ValueError("arm %r has no capsule on link(s) %s (links: %s)"
+                             % (self.name, ", ".join(sorted(unknown)), ", ".join(self.names)))
+        return ~np.isin(self.names, list(skip))
+
+    def capsules(self, Q):
+        """Capsules at joint vectors ``Q`` (N, n) or (n,): ``(A, B, radii)`` with
+        endpoints A, B (N, C, 3) in the world frame, m, and radii (C,), m."""
+        F = self.kin.link_frames(np.atleast_2d(np.asarray(Q, dtype=float)))[:, self.link_index]
+        F = self.base_pose @ F                                        # (N, C, 4, 4)
+        R, t = F[..., :3, :3], F[..., :3, 3]
+        A = np.einsum("ncij,cj->nci", R, self._a) + t
+        B = np.einsum("ncij,cj->nci", R, self._b) + t
+        return A, B, self.radii
+
+
+# ----------------------------------------------------------- distances
+def _point_segment(p, q0, d, dd):
+    """Distance from points p to segments q0 + t d, t in [0, 1]; dd = d.d."""
+    w = p - q0
+    t = np.clip(np.where(dd > 0, _dot(w, d) / np.where(dd > 0, dd, 1.0), 0.0), 0.0, 1.0)
+    return np.linalg.norm(w - t[..., None] * d, axis=-1)
+
+
+def segment_distance(P0, P1, Q0, Q1):
+    """Closest distance between segments P0-P1 and Q0-Q1.
+
+    Arguments are (..., 3) arrays that broadcast together; returns the
+    broadcast shape without the last axis, m.  Degenerate (point) segments
+    and parallel segments are handled: the result is the minimum over the
+    clamped closest-point pair of the two lines (Ericson's algorithm, with
+    the normal computed by a cross product, so it stays accurate at small
+    angles) and the four endpoint-to-segment distances.  Every candidate is
+    a distance between two actual points of the segments, so the result is
+    never below the true distance, and the boundary candidates make it exact
+    when the optimum lies on an endpoint (always the case for parallel
+    segments).
+    """
+    P0, P1, Q0, Q1 = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (P0, P1, Q0, Q1)))
+    d1, d2, r = P1 - P0, Q1 - Q0, P0 - Q0
+    a, e, b = _dot(d1, d1), _dot(d2, d2), _dot(d1, d2)
+    c, f = _dot(d1, r), _dot(d2, r)
+    n = _cross(d1, d2)
+    denom = _dot(n, n)
+    skew = denom > 1e-24 * a * e
+    s = np.where(skew, _dot(n, _cross(d2, r)) / np.where(skew, denom, 1.0), 0.0).clip(0.0, 1.0)
+    t_free = np.where(e > 0, (b * s + f) / np.where(e > 0, e, 1.0), 0.0)
+    t = t_free.clip(0.0, 1.0)
+    s = np.where(t != t_free, np.where(a > 0, (b * t - c) / np.where(a > 0, a, 1.0), 0.0).clip(0.0, 1.0), s)
+    best = np.linalg.norm(r + s[..., None] * d1 - t[..., None] * d2, axis=-1)
+    for p, q0, d, dd in ((P0, Q0, d2, e), (P1, Q0, d2, e), (Q0, P0, d1, a), (Q1, P0, d1, a)):
+        best = np.minimum(best, _point_segment(p, q0, d, dd))
+    return best
+
+
+def capsule_distances(A1, B1, r1, A2, B2, r2):
+    """Surface distances between every capsule of one set and every capsule
+    of another, configuration by configuration.
+
+    A1, B1 : (N, C1, 3) and A2, B2 : (N, C2, 3) endpoints, m; r1 (C1,),
+    r2 (C2,) radii, m.  Returns (N, C1, C2), m (negative = overlap).
+    Evaluated in chunks of configurations to bound memory.
+    """
+    N, C1, C2 = A1.shape[0], A1.shape[1], A2.shape[1]
+    out = np.empty((N, C1, C2))
+    step = max(1, _CHUNK_PAIRS // max(1, C1 * C2))
+    for i in range(0, N, step):
+        j = slice(i, i + step)
+        out[j] = segment_distance(A1[j, :, None], B1[j, :, None], A2[j, None], B2[j, None])
+    return out - np.asarray(r1)[:, None] - np.asarray(r2)[None, :]
+
+
+def clearance_between(body_a, QA, body_b, QB):
+    """Clearance (N,), m, between two arms whose joint vectors are ``QA``
+    (N, na) and ``QB`` (N, nb), taken together row by row: the minimum
+    surface distance over every capsule pair (negative = penetration)."""
+    A1, B1, r1 = body_a.capsules(QA)
+    A2, B2, r2 = body_b.capsules(QB)
+    if A1.shape[0] != A2.shape[0]:
+        raise ValueError("QA and QB must hold the same number of configurations, got %d and %d"
+                         % (A1.shape[0], A2.shape[0]))
+    return capsule_distances(A1, B1, r1, A2, B2, r2).min(axis=(1, 2))
+
+
+def _box_sdf(X, lo, hi):
+    """Signed distance of points X (..., 3) to boxes [lo, hi] (negative inside)."""
+    d = np.maximum(lo - X, X - hi)
+    return np.linalg.norm(np.maximum(d, 0.0), axis=-1) + np.minimum(d.max(axis=-1), 0.0)
+
+
+def box_clearance(A, B, radii, box_min, box_max, mask=None):
+    """Clearance (N,), m, of capsules to an axis-aligned box.
+
+    A, B : (N, C, 3) capsule endpoints, m;  radii : (C,), m
+    box_min, box_max : (3,) or (N, 3) box corners in the same frame, m
+    mask : optional (C,) bool, capsules to consider (default all)
+
+    Each capsule's clearance is min over its segment of the box's signed
+    distance, minus its radius: negative when the capsule overlaps the box
+    (then minus the depth of its deepest segment point, minus the radius).
+    The signed distance of a box is convex, so along a segment it is a convex
+    function of the segment parameter, minimised by golden-section search
+    (45 steps: parameter bracket < 5e-10) and compared with both endpoints.
+    The value returned is that of an actual segment point, so it is never
+    below the true clearance and exceeds it by at most 5e-10 x the segment
+    length (under a nanometre for our links).
+    """
+    A, B = np.asarray(A, dtype=float), np.asarray(B, dtype=float)
+    lo, hi = np.asarray(box_min, dtype=float), np.asarray(box_max, dtype=float)
+    if np.any(lo > hi):
+        raise ValueError("box_min must be <= box_max in every axis, got %s and %s" % (lo, hi))
+    if lo.ndim == 2:
+        lo, hi = lo[:, None, :], hi[:, None, :]
+    radii = np.asarray(radii, dtype=float)
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if not mask.any():
+            raise ValueError("no capsule left to check (every link skipped)")
+        A, B, radii = A[:, mask], B[:, mask], radii[mask]
+    D = B - A
+
+    def f(t):
+        return _box_sdf(A + t[..., None] * D, lo, hi)
+
+    g = (np.sqrt(5.0) - 1.0) / 2.0
+    left, right = np.zeros(A.shape[:2]), np.ones(A.shape[:2])
+    x1, x2 = right - g, left + g
+    f1, f2 = f(x1), f(x2)
+    for _ in range(_GOLDEN_ITERS):
+        keep_left = f1 <= f2                      # the minimum lies in [left, x2]
+        right = np.where(keep_left, x2, right)
+        left = np.where(keep_left, left, x1)
+        x_new = np.where(keep_left, right - g * (right - left), left + g * (right - left))
+        f_new = f(x_new)
+        x1, f1, x2, f2 = (np.where(keep_left, x_new, x2), np.where(keep_left, f_new, f2),
+                          np.where(keep_left, x1, x_new), np.where(keep_left, f1, f_new))
+    best = np.minimum(np.minimum(f1, f2), np.minimum(f(np.zeros_like(left)), f(np.ones_like(left))))
+    return (best - radii).min(axis=1)
+
+
+def bed_clearance(body, Q, cell, skip=("base_link",)):
+    """Clearance (N,), m, of an arm at joint vectors ``Q`` (N, n) to the print
+    bed: the slab ``cell.bed.size`` (x, y, thickness) below the bed's top
+    surface.  ``skip``: links not checked (those mounted at or below the
+    table, like the base link; names without the arm prefix)."""
+    A, B, r = body.capsules(Q)
+    inv = np.linalg.inv(cell.bed.pose)
+    sx, sy, thick = cell.bed.size
+    return box_clearance(_transform(inv, A), _transform(inv, B), r,
+                         (-sx / 2, -sy / 2, -thick), (sx / 2, sy / 2, 0.0), body.mask(skip))
+
+
+def part_clearance(body, Q, box_min, box_max, skip=()):
+    """Clearance (N,), m, of an arm at joint vectors ``Q`` (N, n) to the part
+    printed so far, approximated by the world axis-aligned box ``box_min`` ..
+    ``box_max`` ((3,) or (N, 3), m; e.g. :meth:`ambots.deposit.Deposit.bounds`).
+    The nozzle link is checked too: its capsule stops 5 mm above the tip, so a
+    nozzle printing on the part's top face has about +5 mm clearance there.
+    ``skip``: link names not checked."""
+    A, B, r = body.capsules(Q)
+    return box_clearance(A, B, r, box_min, box_max, body.mask(skip))
+
+
+# ------------------------------------------------------------ seam zone
+@dataclass(frozen=True)
+class SeamZone:
+    """Seam-zone widths of the concurrent schedule, from the arms' geometry (mm).
+
+    ``any_mm``: the sum of two neighbours' protrusions in the worst horizontal
+    direction, plus the margin.  ``facing_mm``: the same with protrusions
+    measured only along the seam normal, towards the neighbour's base.
+    ``protrusion_any_mm[arm]`` and ``protrusion_facing_mm[(arm, neighbour)]``
+    are the parts.  ``clearance_any_mm`` / ``clearance_facing_mm``: the
+    smallest arm-to-arm clearance (all capsules, no height band) found over
+    pairs of sampled configurations at the same height whose nozzles are at
+    least that zone width apart along the seam normal (NaN: no such pair).
+
+    ``any_mm`` counts each arm's own forearm, shoulder and base trailing back
+    towards its base (they are within the band of a nozzle on the bed), so it
+    is about the arms' reach, not a usable zone; ``facing_mm`` is the one to
+    use.  Default cell, 10 mm margin: facing 90.1 mm (Kinova 35.1 + UR10 45.0,
+    their wrists stacked above the nozzle), any direction 1979 mm."""
+    any_mm: float
+    facing_mm: float
+    margin_mm: float
+    band: float
+    protrusion_any_mm: Dict[str, float]
+    protrusion_facing_mm: Dict[Tuple[str, str], float]
+    clearance_any_mm: float
+    clearance_facing_mm: float
+
+
+class _Sampled(NamedTuple):
+    """One arm's sampled nozzle-down configurations: tips (M, 3) and capsule
+    endpoints (M, C, 3) in the bed frame, joint vectors Q (M, n)."""
+    arm: object
+    body: ArmBody
+    tips: np.ndarray
+    Q: np.ndarray
+    A: np.ndarray
+    B: np.ndarray
+
+
+def _solve_down(cell, arm, body, tips):
+    """IK from the arm's home for nozzle-down tips (M, 3) in the bed frame:
+    (Q (M, n), ok (M,))."""
+    from ambots.workspace import down_in_base, world_to_base
+    pts = _transform(cell.bed.pose, tips)
+    Q, ok, _ = body.kin.ik_batch(world_to_base(arm, pts), np.asarray(arm.profile.home), down_in_base(arm))
+    return Q, ok
+
+
+def _sample(cell, arm, n, heights):
+    """IK at an n x n bed grid at every height; unreachable points left out."""
+    from ambots.workspace import bed_points
+    body = ArmBody.from_arm(arm)
+    tips = _transform(np.linalg.inv(cell.bed.pose), bed_points(cell, n, heights))
+    Q, ok = _solve_down(cell, arm, body, tips)
+    if not ok.any():
+        raise UnreachableError("arm %r reaches none of the %d bed grid points with the nozzle down"
+                               % (arm.name, len(tips)))
+    A, B, _ = body.capsules(Q[ok])
+    inv = np.linalg.inv(cell.bed.pose)
+    return _Sampled(arm, body, tips[ok], Q[ok], _transform(inv, A), _transform(inv, B))
+
+
+def _protrusion(s, band, u=None):
+    """Horizontal protrusion (M,), m, of the capsules of sampled
+    configurations ``s`` from the vertical nozzle axis through each tip:
+    over capsule points whose segment point lies at most ``band + r`` above
+    the tip (conservative: the full radius r is counted up to there), the
+    largest offset along the horizontal unit vector ``u`` (2,) of the bed
+    frame, or the largest horizontal distance when ``u`` is None."""
+    A, B, r, tips = s.A, s.B, s.body.radii, s.tips
+    top = (tips[:, 2] + band)[:, None] + r                          # (M, C)
+    za, zb = A[..., 2], B[..., 2]
+    t_cross = ((top - za) / np.where(zb != za, zb - za, 1.0))[..., None]
+    cross = A + t_cross * (B - A)
+    ends = [np.where((za > top)[..., None], cross, A), np.where((zb > top)[..., None], cross, B)]
+    off = []
+    for P in ends:
+        h = P[..., :2] - tips[:, None, :2]
+        off.append(np.linalg.norm(h, axis=-1) if u is None else h @ u)
+    below = (za <= top) | (zb <= top)
+    return np.where(below, np.maximum(off[0], off[1]) + r, -np.inf).max(axis=1)
+
+
+def _shifted_clearance(cell, sa, sb, u, z):
+    """Clearance (m) of arm b placed (IK) with its nozzle exactly ``z`` along
+    ``u`` from each of arm a's sampled tips, on the bed; inf if none fits."""
+    sx, sy, _ = cell.bed.size
+    tips = sa.tips + z * np.append(u, 0.0)
+    on_bed = (np.abs(tips[:, 0]) <= sx / 2 + 1e-9) & (np.abs(tips[:, 1]) <= sy / 2 + 1e-9)
+    Qb, ok = _solve_down(cell, sb.arm, sb.body, tips[on_bed])
+    if not ok.any():
+        return np.inf
+    return float(clearance_between(sa.body, sa.Q[on_bed][ok], sb.body, Qb[ok]).min())
+
+
+def _pair_clearance(cell, sa, sb, u, z):
+    """Smallest clearance (m, inf if no pair) between arms a and b with their
+    nozzles at the same height and at least ``z`` apart along ``u`` (a's side
+    to b's side): every such pair of sampled configurations, plus each arm's
+    samples with the other arm solved exactly ``z`` away."""
+    ia, ib = np.nonzero(np.isclose(sa.tips[:, None, 2], sb.tips[None, :, 2], atol=1e-9))
+    far = (sb.tips[ib, :2] - sa.tips[ia, :2]) @ u >= z
+    grid = (float(clearance_between(sa.body, sa.Q[ia[far]], sb.body, sb.Q[ib[far]]).min())
+            if far.any() else np.inf)
+    return min(grid, _shifted_clearance(cell, sa, sb, u, z), _shifted_clearance(cell, sb, sa, -u, z))
+
+
+def seam_zone(cell, arms=None, margin_mm=10.0, band=0.35, n=9, n_heights=4):
+    """Seam-zone width for arms printing concurrently (see :mod:`ambots.coordinate`).
+
+    Every pair of ``arms`` (default: the cell's) is treated as sharing a seam,
+    a vertical plane perpendicular to the line between their bases (as in
+    :mod:`ambots.partition`).  Each arm's nozzle-down configurations are
+    solved (IK seeded from its home) at an ``n`` x ``n`` bed grid at
+    ``n_heights`` heights from 0 to ``bed.max_height``; unreachable points are
+    left out.  An arm's protrusion is the largest horizontal distance (bed xy
+    plane) from the nozzle axis of its capsules below the nozzle + ``band``
+    (m), over all its configurations: in any direction, or along the seam
+    normal towards the neighbour.  Zone = protrusion A + protrusion B +
+    ``margin_mm``, maximised over the pairs.  Each zone is then checked with
+    :func:`clearance_between` (all capsules, no band).  Returns a
+    :class:`SeamZone`.
+    """
+    from ambots.partition import arm_sites_mm
+    arms = list(cell.arms if arms is None else arms)
+    if len(arms) < 2:
+        raise ValueError("a seam needs at least two arms")
+    heights = np.linspace(0.0, cell.bed.max_height, n_heights)
+    sites = arm_sites_mm(cell, arms) / 1000.0
+    sampled = [_sample(cell, arm, n, heights) for arm in arms]
+    p_any = {s.arm.name: float(_protrusion(s, band).max()) for s in sampled}
+    margin = margin_mm / 1000.0
+    p_face, z_any, z_face = {}, 0.0, 0.0
+    pairs = []
+    for i, sa in enumerate(sampled):
+        for j in range(i + 1, len(sampled)):
+            sb = sampled[j]
+            u = (sites[j] - sites[i]) / np.linalg.norm(sites[j] - sites[i])     # from a towards b
+            a, b = sa.arm.name, sb.arm.name
+            p_face[a, b] = float(_protrusion(sa, band, u).max())
+            p_face[b, a] = float(_protrusion(sb, band, -u).max())
+            z_any = max(z_any, p_any[a] + p_any[b] + margin)
+            z_face = max(z_face, p_face[a, b] + p_face[b, a] + margin)
+            pairs.append((sa, sb, u))
+    c_any = min(_pair_clearance(cell, sa, sb, u, z_any) for sa, sb, u in pairs)
+    c_face = min(_pair_clearance(cell, sa, sb, u, z_face) for sa, sb, u in pairs)
+    mm = lambda v: float(v) * 1000.0 if np.isfinite(v) else float("nan")  # noqa: E731
+    return SeamZone(mm(z_any), mm(z_face), float(margin_mm), float(band),
+                    {k: mm(v) for k, v in p_any.items()}, {k: mm(v) for k, v in p_face.items()},
+                    mm(c_any), mm(c_face))
+
+
+def seam_zone_mm(cell, arms=None, margin_mm=10.0, direction="facing", **kw):
+    """Seam-zone width (mm) from :func:`seam_zone`: ``direction`` ``"facing"``
+    (protrusions along the seam normal, towards the neighbour) or ``"any"``
+    (worst horizontal direction).  ``kw``: ``band``, ``n``, ``n_heights``."""
+    if direction not in ("facing", "any"):
+        raise ValueError("direction must be 'facing' or 'any', got %r" % (direction,))
+    z = seam_zone(cell, arms, margin_mm, **kw)
+    return z.facing_mm if direction == "facing" else z.any_mm

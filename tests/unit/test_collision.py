@@ -1,0 +1,309 @@
+"""Capsule collision model: segment distances against brute force, capsules
+against the URDF cylinders (independent parser and forward kinematics),
+arm-arm, arm-bed and arm-part clearances in the default cell, seam zone."""
+import io
+
+import numpy as np
+import pytest
+import yourdfpy
+
+from ambots.collision import (ArmBody, bed_clearance, box_clearance, capsule_distances, clearance_between,
+                              part_clearance, seam_zone, seam_zone_mm, segment_distance)
+from ambots.config import default_cell_path, load_cell
+from ambots.model import arm_urdf
+from ambots.workspace import down_in_base, world_to_base
+
+
+@pytest.fixture(scope="module")
+def cell():
+    return load_cell(default_cell_path())
+
+
+@pytest.fixture(scope="module")
+def bodies(cell):
+    return {a.name: ArmBody.from_arm(a) for a in cell.arms}
+
+
+def bed_to_world(cell, p):
+    T = cell.bed.pose
+    return np.asarray(p, dtype=float) @ T[:3, :3].T + T[:3, 3]
+
+
+def solve(cell, arm, body, bed_pts):
+    """Nozzle-down IK from home at bed-frame points (M, 3); every one must solve."""
+    Q, ok, _ = body.kin.ik_batch(world_to_base(arm, bed_to_world(cell, bed_pts)),
+                                 np.asarray(arm.profile.home), down_in_base(arm))
+    assert ok.all(), "test points must be reachable"
+    return Q
+
+
+def seam_normal(cell):
+    """Unit vector (bed xy) from the Kinova's base towards the UR10's."""
+    inv = np.linalg.inv(cell.bed.pose)
+    a, b = (inv[:3, :3] @ np.asarray(arm.base_xyz) + inv[:3, 3] for arm in cell.arms)
+    d = (b - a)[:2]
+    return d / np.linalg.norm(d)
+
+
+# ------------------------------------------------------------ segments
+def brute_force(p0, p1, q0, q1, n=201):
+    """(coarse grid minimum, refined minimum, coarse error bound) of the
+    distance between sampled points of two segments."""
+    def grid(s_lo, s_hi, t_lo, t_hi):
+        s = np.linspace(s_lo, s_hi, n)[:, None, None]
+        t = np.linspace(t_lo, t_hi, n)[None, :, None]
+        d = np.linalg.norm(p0 + s * (p1 - p0) - q0 - t * (q1 - q0), axis=-1)
+        i, j = np.unravel_index(np.argmin(d), d.shape)
+        return d[i, j], s[i, 0, 0], t[0, j, 0]
+    coarse, s, t = grid(0, 1, 0, 1)
+    h = 1.0 / (n - 1)
+    fine, _, _ = grid(max(0, s - h), min(1, s + h), max(0, t - h), min(1, t + h))
+    bound = (np.linalg.norm(p1 - p0) + np.linalg.norm(q1 - q0)) * h / 2
+    return coarse, min(fine, coarse), bound
+
+
+def random_segment_pairs(rng, n):
+    pairs = []
+    for k in range(n):
+        p0, p1, q0, q1 = rng.normal(size=(4, 3))
+        kind = k % 6
+        if kind == 1:                       # parallel, offset
+            q0 = p0 + rng.normal(size=3) * 0.3
+            q1 = q0 + (p1 - p0) * rng.uniform(-2, 2)
+        elif kind == 2:                     # crossing: q passes through a point of p
+            x = p0 + rng.uniform() * (p1 - p0)
+            d = rng.normal(size=3)
+            q0, q1 = x - rng.uniform(0.1, 1) * d, x + rng.uniform(0.1, 1) * d
+        elif kind == 3:                     # one degenerate
+            p1 = p0.copy()
+        elif kind == 4:                     # both degenerate
+            p1, q1 = p0.copy(), q0.copy()
+        elif kind == 5:                     # collinear
+            d = p1 - p0
+            q0, q1 = p0 + rng.uniform(-2, 2) * d, p0 + rng.uniform(-2, 2) * d
+        pairs.append((p0, p1, q0, q1))
+    return pairs
+
+
+def test_segment_distance_matches_brute_force():
+    rng = np.random.default_rng(7)
+    pairs = random_segment_pairs(rng, 120)
+    got = segment_distance(*(np.array(x) for x in zip(*pairs)))
+    assert got.shape == (120,)
+    for d, (p0, p1, q0, q1) in zip(got, pairs):
+        coarse, fine, bound = brute_force(p0, p1, q0, q1)
+        assert d <= fine + 1e-12                 # never above a distance actually realised
+        assert d >= coarse - bound - 1e-12       # never below the true minimum
+
+
+@pytest.mark.parametrize("p0, p1, q0, q1, expected", [
+    ((-1, 0, 0), (1, 0, 0), (0, -1, 0.2), (0, 1, 0.2), 0.2),          # skew, perpendicular
+    ((0, 0, 0), (1, 0, 0), (0.5, 0.3, 0), (2, 0.3, 0), 0.3),          # parallel, overlapping
+    ((0, 0, 0), (1, 0, 0), (1.5, 0.4, 0), (3, 0.4, 0), 0.41 ** 0.5),  # parallel, disjoint
+    ((0, 0, 0), (1, 0, 0), (1.5, 0, 0), (3, 0, 0), 0.5),              # collinear, disjoint
+    ((-1, -1e-7, 0), (1, 1e-7, 0), (-1, 1e-7, 0), (1, -1e-7, 0), 0.0),  # crossing at a tiny angle
+    ((0, 0, 0), (0, 0, 0), (1, 1, 0), (1, -1, 0), 1.0),               # point to segment
+    ((0, 0, 1), (0, 0, 1), (0, 0, 0), (0, 0, 0), 1.0),                # point to point
+    ((0, 0, 0), (1, 1, 1), (0, 0, 0), (-1, 2, 0), 0.0),               # shared endpoint
+])
+def test_segment_distance_known_cases(p0, p1, q0, q1, expected):
+    assert segment_distance(p0, p1, q0, q1) == pytest.approx(expected, abs=1e-12)
+    assert segment_distance(q1, q0, p1, p0) == pytest.approx(expected, abs=1e-12)
+
+
+def test_segment_distance_broadcasts():
+    rng = np.random.default_rng(3)
+    P0, P1 = rng.normal(size=(2, 5, 1, 3))
+    Q0, Q1 = rng.normal(size=(2, 1, 7, 3))
+    got = segment_distance(P0, P1, Q0, Q1)
+    assert got.shape == (5, 7)
+    for i in range(5):
+        for j in range(7):
+            assert got[i, j] == segment_distance(P0[i, 0], P1[i, 0], Q0[0, j], Q1[0, j])
+
+
+# ------------------------------------------------------------ capsules
+def urdf_capsules(arm, q):
+    """Capsule endpoints and radii from the URDF cylinders, by yourdfpy's own
+    parser and forward kinematics: (names, A, B, r), world frame."""
+    profile = arm.profile
+    robot = yourdfpy.URDF.load(io.BytesIO(arm_urdf(profile).encode()), build_scene_graph=True,
+                               load_meshes=False, build_collision_scene_graph=False, load_collision_meshes=False)
+    robot.update_cfg(dict(zip(profile.joint_names, q)))
+    names, A, B, r = [], [], [], []
+    for link in robot.robot.links:
+        for col in link.collisions:
+            cyl = col.geometry.cylinder
+            T = arm.base_pose @ robot.get_transform(link.name, profile.base_link) @ col.origin
+            ends = [T @ [0, 0, z * cyl.length / 2, 1] for z in (-1, 1)]
+            inset = min(cyl.radius, cyl.length / 2)
+            axis = T[:3, 2]
+            names.append(link.name)
+            A.append(ends[0][:3] + inset * axis)
+            B.append(ends[1][:3] - inset * axis)
+            r.append(cyl.radius)
+    return names, np.array(A), np.array(B), np.array(r)
+
+
+@pytest.mark.parametrize("which", [0, 1])
+def test_capsules_agree_with_urdf_cylinders(cell, bodies, which):
+    arm = cell.arms[which]
+    body = bodies[arm.name]
+    rng = np.random.default_rng(11)
+    lo = np.where(np.isfinite(body.kin.lower), body.kin.lower, -np.pi)
+    hi = np.where(np.isfinite(body.kin.upper), body.kin.upper, np.pi)
+    for q in (np.asarray(arm.profile.home), rng.uniform(lo, hi)):
+        names, A, B, r = urdf_capsules(arm, q)
+        got_A, got_B, got_r = body.capsules(q)
+        assert list(body.names) == names
+        assert "base_link" in names and "nozzle" in names
+        np.testing.assert_allclose(got_r, r)
+        np.testing.assert_allclose(got_A[0], A, atol=1e-9)
+        np.testing.assert_allclose(got_B[0], B, atol=1e-9)
+
+
+@pytest.mark.parametrize("which", [0, 1])
+def test_nozzle_capsule_stops_5mm_above_the_tip(cell, bodies, which):
+    arm = cell.arms[which]
+    body = bodies[arm.name]
+    rng = np.random.default_rng(5)
+    lo = np.where(np.isfinite(body.kin.lower), body.kin.lower, -np.pi)
+    hi = np.where(np.isfinite(body.kin.upper), body.kin.upper, np.pi)
+    Q = rng.uniform(lo, hi, (50, body.kin.dof))
+    T = arm.base_pose @ body.kin.fk_batch(Q)
+    tip, axis = T[:, :3, 3], T[:, :3, :3] @ body.kin.tool_axis      # axis points out of the tip
+    A, B, r = body.capsules(Q)
+    k = list(body.names).index("nozzle")
+    # the capsule's lowest point along the nozzle axis, measured up from the tip
+    above = np.minimum(np.einsum("ij,ij->i", tip - A[:, k], axis),
+                       np.einsum("ij,ij->i", tip - B[:, k], axis)) - r[k]
+    assert above.min() >= 0.005 - 1e-9
+    # and the tip itself is 5 mm from the capsule's surface
+    np.testing.assert_allclose(segment_distance(A[:, k], B[:, k], tip, tip) - r[k], 0.005, atol=1e-9)
+
+
+def test_capsules_of_many_configurations(bodies):
+    body = bodies["ur10"]
+    A, B, r = body.capsules(np.zeros((4, body.kin.dof)))
+    assert A.shape == B.shape == (4, len(body), 3) and r.shape == (len(body),)
+    with pytest.raises(ValueError, match="no capsule on link"):
+        body.mask(["ur10/base_link"])
+
+
+# ------------------------------------------------------------ arm vs arm
+def test_home_poses_do_not_collide(cell, bodies):
+    k, u = cell.arms
+    c = clearance_between(bodies["kinova"], k.profile.home, bodies["ur10"], u.profile.home)
+    assert c.shape == (1,) and c[0] > 0.05
+
+
+def test_nozzles_side_by_side_collide(cell, bodies):
+    k, u = cell.arms
+    n = np.append(seam_normal(cell), 0.0)
+    centres = np.array([[0.0, 0.0, 0.0], [0.02, -0.1, 0.05], [-0.03, 0.12, 0.1]])
+    for gap, expect_touch in ((0.03, True), (0.25, False)):
+        Qk = solve(cell, k, bodies["kinova"], centres - n * gap / 2)
+        Qu = solve(cell, u, bodies["ur10"], centres + n * gap / 2)
+        c = clearance_between(bodies["kinova"], Qk, bodies["ur10"], Qu)
+        assert c.shape == (3,)
+        assert np.all(c < 0) if expect_touch else np.all(c > 0)
+        # the two vertical nozzle capsules alone: their axes are `gap` apart
+        A1, B1, r1 = bodies["kinova"].capsules(Qk)
+        A2, B2, r2 = bodies["ur10"].capsules(Qu)
+        i, j = list(bodies["kinova"].names).index("nozzle"), list(bodies["ur10"].names).index("nozzle")
+        nn = capsule_distances(A1[:, [i]], B1[:, [i]], r1[[i]], A2[:, [j]], B2[:, [j]], r2[[j]])[:, 0, 0]
+        np.testing.assert_allclose(nn, gap - r1[i] - r2[j], atol=1e-6)
+        assert np.all(c <= nn + 1e-12)
+
+
+# ------------------------------------------------------------ boxes
+def sampled_box_clearance(a, b, r, lo, hi, n=4001):
+    """Reference: signed distance of n points along the segment, computed
+    face by face (outside: distance to the clamped point; inside: minus the
+    distance to the nearest face)."""
+    t = np.linspace(0, 1, n)[:, None]
+    X = a + t * (b - a)
+    inside = np.all((X > lo) & (X < hi), axis=1)
+    outside = np.linalg.norm(X - np.clip(X, lo, hi), axis=1)
+    depth = np.minimum(X - lo, hi - X).min(axis=1)
+    return np.where(inside, -depth, outside).min() - r, np.linalg.norm(b - a) / (n - 1) / 2
+
+
+def test_box_clearance_matches_sampling():
+    rng = np.random.default_rng(9)
+    N, C = 40, 3
+    A = rng.uniform(-1, 1, (N, C, 3))
+    B = A + rng.normal(scale=0.6, size=(N, C, 3))
+    B[:, 2] = A[:, 2]                                        # some degenerate capsules
+    r = np.array([0.05, 0.02, 0.1])
+    lo = rng.uniform(-0.5, 0, (N, 3))
+    hi = lo + rng.uniform(0.1, 0.8, (N, 3))
+    got = box_clearance(A, B, r, lo, hi)
+    assert got.shape == (N,)
+    for i in range(N):
+        ref = [sampled_box_clearance(A[i, c], B[i, c], r[c], lo[i], hi[i]) for c in range(C)]
+        best, tol = min(v for v, _ in ref), max(t for _, t in ref)
+        assert best - tol - 1e-12 <= got[i] <= best + 1e-9
+    assert np.any(got < 0) and np.any(got > 0)
+
+
+def test_box_clearance_exact_cases():
+    A = np.array([[[-1.0, 0.1, 0.2]], [[-1.0, 2.0, 0.0]]])
+    B = np.array([[[1.0, 0.1, 0.2]], [[1.0, 2.0, 0.0]]])
+    lo, hi = np.array([-0.5, -0.5, -0.5]), np.array([0.5, 0.5, 0.5])
+    got = box_clearance(A, B, [0.05], lo, hi)
+    np.testing.assert_allclose(got, [-0.3 - 0.05, 1.5 - 0.05], atol=1e-12)
+    with pytest.raises(ValueError):
+        box_clearance(A, B, [0.05], hi, lo)
+
+
+def test_bed_clearance(cell, bodies):
+    for arm in cell.arms:
+        body = bodies[arm.name]
+        Q = solve(cell, arm, body, [[0.0, 0.0, 0.0], [0.05, 0.05, -0.02], [0.0, 0.0, 0.1]])
+        c = bed_clearance(body, Q, cell)
+        # on the bed the nozzle's capsule is 5 mm above it; 20 mm into it, the
+        # capsule's segment end is 10 mm above the top, less the 25 mm radius
+        np.testing.assert_allclose(c, [0.005, -0.015, 0.105], atol=1e-6)
+        assert np.all(bed_clearance(body, Q, cell, skip=("base_link", "nozzle")) > 0.05)
+
+
+def test_part_clearance(cell, bodies):
+    arm, body = cell.arms[1], bodies["ur10"]
+    # a 40 mm cube on the bed centre; the nozzle on its top face, 10 mm into it, 50 mm beside it
+    lo, hi = bed_to_world(cell, [-0.02, -0.02, 0.0]), bed_to_world(cell, [0.02, 0.02, 0.04])
+    Q = solve(cell, arm, body, [[0.0, 0.0, 0.04], [0.0, 0.0, 0.03], [0.0, 0.1, 0.02]])
+    c = part_clearance(body, Q, lo, hi)
+    assert c[0] == pytest.approx(0.005, abs=1e-6)
+    assert c[1] == pytest.approx(-0.005, abs=1e-6)
+    assert c[2] > 0.04
+    assert np.all(part_clearance(body, Q, np.stack([lo] * 3), np.stack([hi] * 3)) == c)
+
+
+# ------------------------------------------------------------ seam zone
+def test_seam_zone_of_the_default_cell(cell, bodies):
+    z = seam_zone(cell)
+    k, u = cell.arms
+    # protrusion towards the neighbour: at least the nozzle's radius, and no
+    # more than the worst horizontal direction
+    for (a, b), p in z.protrusion_facing_mm.items():
+        assert 25.0 - 1e-6 <= p <= z.protrusion_any_mm[a] + 1e-9
+    assert z.facing_mm == pytest.approx(sum(z.protrusion_facing_mm.values()) + z.margin_mm)
+    assert z.any_mm == pytest.approx(sum(z.protrusion_any_mm.values()) + z.margin_mm)
+    assert z.facing_mm <= z.any_mm
+    assert z.clearance_facing_mm > 0
+    assert seam_zone_mm(cell) == pytest.approx(z.facing_mm, abs=1e-6)
+    # independent check: both nozzles at the bed centre line, the zone apart, do not touch ...
+    n = np.append(seam_normal(cell), 0.0)
+    pts = np.array([[0.0, y, h] for y in (-0.1, 0.0, 0.1) for h in (0.0, 0.15)])
+    Z = z.facing_mm / 1000.0
+    c = clearance_between(bodies["kinova"], solve(cell, k, bodies["kinova"], pts - n * Z / 2),
+                          bodies["ur10"], solve(cell, u, bodies["ur10"], pts + n * Z / 2))
+    assert np.all(c > 0)
+    # ... but do when they are as close as the protrusions alone allow, less 10 mm
+    gap = (z.facing_mm - z.margin_mm - 10.0) / 1000.0
+    c = clearance_between(bodies["kinova"], solve(cell, k, bodies["kinova"], pts - n * gap / 2),
+                          bodies["ur10"], solve(cell, u, bodies["ur10"], pts + n * gap / 2))
+    assert np.any(c < 0)
+    with pytest.raises(ValueError):
+        seam_zone_mm(cell, direction="sideways")
