@@ -1,0 +1,623 @@
+"""The front end: the operator's menu, and a whole print job for scripts.
+
+The menu of the original design, same five choices in the same order::
+
+    1) start demo (cut, slice, send and start the demo cube)
+    2) slice an STL file
+    3) send G-code to the arms
+    4) start printing
+    5) quit
+
+- 1 = 2 + 3 + 4 on :data:`ambots.job.DEMO_MODEL`.
+- 2 asks for a model file (default: ``--model``), runs the job pipeline
+  (:func:`ambots.job.run_job`) and writes ``DIR/<arm>.gcode``, ``<arm>.stl``
+  and ``job.json`` (:func:`ambots.job.write_job`; ``DIR`` = ``--out``, else
+  ``out/<model stem>``).  The job stays in memory for 3 and 4.
+- 3 sends each arm its whole program as one A5 chunk
+  (:class:`ambots.protocol.LoadChunk`) through the hub and waits until the
+  hub has acknowledged every chunk.  Without a job in memory it asks for a
+  directory written by 2 and loads ``<arm>.gcode`` for every arm of the cell
+  found there (checked: readable G-code, well-formed ``;@`` directives for
+  this cell's arms, no bare A-series line).
+- 4 sends A1 (:class:`ambots.protocol.Start`) to every arm whose program has
+  ``start_first`` (in ``sequential`` mode only the first arm: the arms
+  start each other with ``;@A1`` directives), then follows the arms' A10
+  statuses, printing a line per arm when its state or its percentage (in
+  steps of 10) changes, until every arm of the job is DONE (success), or an
+  arm of the job reports ERROR or an A11 (failure: the error text, its
+  G-code line number and that line of the arm's program), or the timeout
+  (``--timeout``; none in the menu).  In the menu Ctrl-C stops *following*
+  (the arms go on) and returns to the menu.  G-code not sent yet is sent
+  first.
+- 5, end of input (Ctrl-D) or Ctrl-C at the prompt: quit.
+
+A bad answer gets one line saying what is expected, then the menu again.
+A bad model, file or cell (:class:`ambots.errors.AmbotsError`) or an
+``OSError`` is one line ``error: ...``, never a traceback, and the menu goes
+on.  :meth:`Menu.print_job` (``--print``) runs 2 + 3 + 4 once and returns
+the exit status: 0 every arm DONE, 1 failure (arm error, undeliverable
+message, timeout; the reason on the error stream), 2 a bad model or cell.
+
+The menu talks to the arms through a *link* (``send(message)``,
+``poll()``, ``wait(timeout)``, ``pending()``); :class:`ReliableLink` is the
+real one, ROS-free: it numbers the front end's messages (``S1000 Q...``,
+:class:`ambots.reliable.Sender`, first Q from the wall clock), retries them
+until the hub acknowledges them (:meth:`ReliableLink.tick`, called on a
+timer), and acknowledges (A8 to the hub) and deduplicates what the hub
+forwards (:class:`ambots.reliable.Receiver`).  The ROS layer
+(``ambots.ros.front_end``) only moves its strings.
+"""
+import argparse
+import functools
+import itertools
+import os
+import re
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+from ambots import data_path, topics
+from ambots.errors import AmbotsError, GCodeError, ProtocolError
+from ambots.protocol import (HUB, MAX_U32, Ack, ArmState, ErrorReport, LoadChunk, Start, Status,
+                             WaitFor, decode, encode)
+from ambots.reliable import Receiver, Sender, seq_seed
+
+__all__ = ["CHOICES", "EXIT_OK", "EXIT_FAILED", "EXIT_BAD_INPUT", "Undelivered", "ReliableLink",
+           "JobTracker", "Menu", "load_programs", "build_parser", "one_line"]
+
+#: the menu, in the original's order
+CHOICES = (
+    ("1", "start demo (cut, slice, send and start the demo cube)"),
+    ("2", "slice an STL file"),
+    ("3", "send G-code to the arms"),
+    ("4", "start printing"),
+    ("5", "quit"),
+)
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+#: --print without --timeout waits this long plus twice the longest estimated print time (s)
+DEFAULT_TIMEOUT_BASE_S = 600.0
+#: how long the menu waits for the hub's acknowledgements before saying so (s)
+DEFAULT_ACK_TIMEOUT_S = 10.0
+
+
+def one_line(exc, limit=400):
+    """An error as one line (multi-line messages, e.g. a slicer's output,
+    joined with " / "), cut to about ``limit`` characters."""
+    text = " / ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+    if isinstance(exc, OSError) and exc.strerror:
+        text = "%s: %s" % (exc.filename, exc.strerror) if exc.filename else exc.strerror
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
+# ------------------------------------------------------------------- the link
+
+@dataclass(frozen=True)
+class Undelivered:
+    """The link gave up a message: the hub never acknowledged it."""
+    text: str       #: the message as last transmitted
+    tries: int
+
+
+class ReliableLink:
+    """The front end's end of reliable delivery, without ROS.
+
+    ``transmit(text)`` publishes one string to the hub (the caller's
+    transport); the transport calls :meth:`receive_text` with every string
+    that arrives in the front end's inbox and :meth:`tick` periodically
+    (every 50 ms, say) for retransmissions.  ``clock()`` (s) times the
+    retries.  Thread-safe: the transport may call in from other threads than
+    the menu's.  Retries: ``initial_timeout`` s, times ``backoff`` after
+    every try up to ``max_timeout``; after ``max_tries`` an
+    :class:`Undelivered` note is queued for :meth:`poll` (None: forever).
+    """
+
+    def __init__(self, transmit, clock=time.monotonic, first_seq=None, initial_timeout=0.2,
+                 backoff=2.0, max_timeout=2.0, max_tries=30, inbox_limit=10000):
+        self._transmit = transmit
+        self.clock = clock
+        if first_seq is None:
+            first_seq = seq_seed(time.time())
+        self.sender = Sender(topics.FRONT_END_ID, first_seq, initial_timeout, backoff, max_timeout,
+                             max_tries)
+        self.receiver = Receiver(topics.FRONT_END_ID)
+        self._cv = threading.Condition()
+        self._inbox = deque(maxlen=inbox_limit)
+        #: the last texts that could not be decoded, with the reason (not acknowledged)
+        self.malformed = deque(maxlen=100)
+
+    def send(self, message):
+        """Number ``message`` (S1000, next Q), transmit it now and keep it
+        until the hub acknowledges it.  Returns its Q."""
+        with self._cv:
+            out = self.sender.send(message, HUB, self.clock())
+        self._transmit(encode(out.message))
+        return out.seq
+
+    def receive_text(self, text):
+        """One string from the front end's inbox: an A8 settles one of our
+        messages; anything numbered is acknowledged (A8 back to its sender,
+        the hub) and, the first time only, queued for :meth:`poll`."""
+        try:
+            msg = decode(text)
+        except ProtocolError as exc:
+            self.malformed.append((text, exc.message))
+            return
+        if isinstance(msg, Ack):
+            with self._cv:
+                self.sender.acknowledge(msg)
+                self._cv.notify_all()
+            return
+        with self._cv:
+            delivery = self.receiver.receive(msg)
+            if delivery.execute:
+                self._inbox.append(msg)
+                self._cv.notify_all()
+        if delivery.ack is not None:
+            self._transmit(encode(delivery.ack))
+
+    def tick(self):
+        """Transmit again what is due; queue an :class:`Undelivered` for
+        each message given up."""
+        given_up = []
+        with self._cv:
+            due = self.sender.due(self.clock(), on_give_up=given_up.append)
+            for out in given_up:
+                self._inbox.append(Undelivered(encode(out.message), out.tries))
+            if given_up:
+                self._cv.notify_all()
+        for out in due:
+            self._transmit(encode(out.message))
+
+    def pending(self):
+        """How many of our messages the hub has not acknowledged yet."""
+        with self._cv:
+            return len(self.sender.pending)
+
+    def poll(self):
+        """The messages received (and :class:`Undelivered` notes) since the
+        last call, oldest first."""
+        with self._cv:
+            out = list(self._inbox)
+            self._inbox.clear()
+            return out
+
+    def wait(self, timeout):
+        """Block up to ``timeout`` s until something is received or acknowledged."""
+        with self._cv:
+            if not self._inbox:
+                self._cv.wait(max(0.0, timeout))
+
+
+# ------------------------------------------------------------- job progress
+
+def _label(arm):
+    return "%s (R%d)" % (arm.name, arm.id)
+
+
+def _excerpt(text, limit=160):
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
+class JobTracker:
+    """Follows the arms of a job (``programs``: arm name -> ArmProgram) from
+    what the link delivers.  :meth:`update` returns the lines to print;
+    :attr:`outcome` is None while running, True when every arm is DONE, or
+    the failure's reason (str).  :attr:`awaiting_report` is True after an
+    ERROR status until the arm's A11 (the reason) arrives."""
+
+    def __init__(self, programs):
+        self.programs = {p.arm.id: p for p in programs.values()}
+        self.state = {i: None for i in self.programs}
+        self.shown = {}              # arm id -> (state, percent // 10) last printed
+        self.outcome = None
+        self.awaiting_report = False
+
+    @property
+    def failed(self):
+        return isinstance(self.outcome, str)
+
+    def update(self, msg):
+        if isinstance(msg, Undelivered):
+            if not self.failed:
+                self.outcome = ("the hub never acknowledged %r after %d tries (is the communication hub "
+                                "running?)" % (_excerpt(msg.text.partition("\n")[0]), msg.tries))
+            return []
+        program = self.programs.get(getattr(msg, "robot", None))
+        if isinstance(msg, ErrorReport):
+            if program is None:
+                return ["note: arm R%d (not in this job) reported an error at G-code line %d: %s"
+                        % (msg.robot, msg.line, msg.message)]
+            if not self.failed or self.awaiting_report:
+                self.outcome = self.error_text(program, msg.line, msg.message)
+                self.awaiting_report = False
+            return []
+        if not isinstance(msg, Status) or program is None:
+            return []
+        self.state[msg.robot] = msg.state
+        key = (msg.state, int(msg.percent // 10))
+        lines = []
+        if self.shown.get(msg.robot) != key:
+            self.shown[msg.robot] = key
+            lines.append("  %-14s %-8s layer %d of %d, line %d of %d, %5.1f %%" % (
+                _label(program.arm) + ":", msg.state.name, min(msg.layer + 1, program.layers),
+                program.layers, msg.line, len(program.lines), msg.percent))
+        if msg.state == ArmState.ERROR and not self.failed:
+            self.outcome = self.error_text(program, msg.line, "reported state ERROR")
+            self.awaiting_report = True
+        elif self.outcome is None and all(s == ArmState.DONE for s in self.state.values()):
+            self.outcome = True
+        return lines
+
+    @staticmethod
+    def error_text(program, line, message):
+        """"<arm> error at G-code line N: message" and that line of its program."""
+        text = "%s error at G-code line %d: %s" % (_label(program.arm), line, message)
+        if 1 <= line <= len(program.lines):
+            text += "\n    line %d of %s's program: %s" % (line, program.arm.name, program.lines[line - 1])
+        return text
+
+
+# --------------------------------------------------------- programs on disk
+
+_MODE_RE = re.compile(r"^; ambots program for arm .*, mode (\w+)")
+
+
+def load_programs(directory, cell):
+    """Per-arm programs from ``directory`` (``<arm>.gcode`` for each arm of
+    ``cell`` found there, as written by :func:`ambots.job.write_job`):
+    {arm name: ArmProgram}.  An arm that another program starts with a
+    ``;@A1`` directive is not started by the front end (``start_first``
+    False).  Raises :class:`~ambots.errors.GCodeError` naming the file and
+    line of the first problem."""
+    from ambots.coordinate import ArmProgram
+    from ambots.gcode import is_a_series_line, parse_gcode_text, summarize
+    from ambots.program import is_directive, parse_directive
+
+    if not os.path.isdir(directory):
+        raise GCodeError(directory, 0, "", "no such directory")
+    ids = {a.id for a in cell.arms}
+    programs, started = {}, set()
+    for arm in cell.arms:
+        path = os.path.join(directory, arm.name + ".gcode")
+        if not os.path.isfile(path):
+            continue
+        try:
+            with open(path, "r", encoding="ascii", newline="") as f:
+                text = f.read()
+        except UnicodeDecodeError as exc:
+            raise GCodeError(path, 0, "", "not ASCII G-code (byte %d)" % exc.start) from None
+        lines = text.splitlines()
+        mode = "?"
+        for n, line in enumerate(lines, 1):
+            if n == 1 and _MODE_RE.match(line):
+                mode = _MODE_RE.match(line).group(1)
+            if is_directive(line):
+                msg = parse_directive(line, path, n)
+                named = [msg.robot] + ([msg.other] if isinstance(msg, WaitFor) else [])
+                unknown = [r for r in named if r not in ids]
+                if unknown:
+                    raise GCodeError(path, n, line, "directive names R%d, not an arm of cell %s"
+                                     % (unknown[0], cell.name))
+                if isinstance(msg, WaitFor) and msg.robot != arm.id:
+                    raise GCodeError(path, n, line, "a barrier for R%d in the program of %s: "
+                                     "written for another cell?" % (msg.robot, _label(arm)))
+                if isinstance(msg, Start):
+                    started.add(msg.robot)
+            elif is_a_series_line(line):
+                raise GCodeError(path, n, line, "A-series command in a program file (only ';@' "
+                                 "directive lines may carry them)")
+        summary = summarize(parse_gcode_text(text, path))      # raises on a bad line
+        programs[arm.name] = ArmProgram(arm, mode, lines, layers=summary["layers"])
+    if not programs:
+        raise GCodeError(directory, 0, "", "no program for any arm of cell %s (looked for %s)" % (
+            cell.name, ", ".join(a.name + ".gcode" for a in cell.arms)))
+    for p in programs.values():
+        p.start_first = p.arm.id not in started
+    return programs
+
+
+# ------------------------------------------------------------------- the menu
+
+class Menu:
+    """The front end's menu (see the module docstring).
+
+    ``link``: see :class:`ReliableLink`.  ``cell``: the loaded cell.
+    ``model``: default answer of choice 2 and model of :meth:`print_job`;
+    ``out``: output folder (default ``out/<model stem>``); ``slicer``,
+    ``mode``, ``seam``: as ``python -m ambots slice``.  ``input(prompt)``
+    reads an answer (EOFError = end of input), ``output(line)`` and
+    ``error(line)`` write one (``error`` defaults to ``output``);
+    ``clock()`` (s) times the waits.  ``timeout``: how long choice 4 follows
+    a print (None: until done or Ctrl-C).
+    """
+
+    def __init__(self, link, cell, model=None, out=None, slicer="builtin", mode="concurrent",
+                 seam="straight", input=input, output=functools.partial(print, flush=True),
+                 error=None, clock=time.monotonic, timeout=None, ack_timeout=DEFAULT_ACK_TIMEOUT_S,
+                 poll_period=0.1, error_grace=1.0):
+        self.link, self.cell = link, cell
+        self.model, self.out = model, out
+        self.slicer, self.mode, self.seam = slicer, mode, seam
+        self.input, self.say = input, output
+        self.complain = error or output
+        self.clock, self.timeout = clock, timeout
+        self.ack_timeout, self.poll_period, self.error_grace = ack_timeout, poll_period, error_grace
+        self.job = None
+        self.print_times = {}       # arm name -> estimated print time (s) of the sliced job
+        self.programs = {}          # arm name -> ArmProgram: what 3 sends and 4 starts
+        self.directory = None       # where the programs are on disk
+        self.sent = False           # the hub acknowledged the current programs' A5s
+        self._chunk_ids = itertools.count(int(time.time()))
+        self._backlog = []
+        self.actions = {"1": self.demo, "2": self.ask_and_slice, "3": self.send, "4": self.start}
+
+    # --- the loop -------------------------------------------------------------------
+
+    def show(self):
+        self.say("")
+        self.say("ambots front end - cell %s: %s" % (self.cell.name, ", ".join(_label(a) for a in self.cell.arms)))
+        if self.programs:
+            self.say("programs: %s%s, %s" % (", ".join(self.programs), " in " + self.directory if self.directory
+                                             else "", "sent" if self.sent else "not sent"))
+        for key, text in CHOICES:
+            self.say("  %s) %s" % (key, text))
+
+    def run(self):
+        """The interactive loop; returns the exit status (0)."""
+        while True:
+            self._notes()
+            self.show()
+            try:
+                answer = self.input("choice [1-5]: ")
+            except (EOFError, KeyboardInterrupt):
+                self.say("")
+                break
+            choice = answer.strip()
+            if choice == "5":
+                break
+            action = self.actions.get(choice)
+            if action is None:
+                what = "no choice given" if not choice else "%r is not a choice" % _excerpt(choice, 40)
+                self.complain("%s: answer 1, 2, 3, 4 or 5" % what)
+                continue
+            self.attempt(action)
+        self.say("bye")
+        return EXIT_OK
+
+    def attempt(self, action):
+        """Run one menu action: a bad input is one line, Ctrl-C returns to
+        the menu, and so does end of input at a question (the menu then
+        quits).  Anything else unexpected is one line too, so that the
+        operator keeps the menu (and can report it)."""
+        try:
+            return action()
+        except (AmbotsError, OSError) as exc:
+            self.complain("error: %s" % one_line(exc))
+        except KeyboardInterrupt:
+            self.say("")
+            self.say("interrupted: back to the menu (a print that was started goes on)")
+        except EOFError:
+            self.say("")
+        except Exception as exc:  # noqa: BLE001 -- the menu outlives a bug; one line, not a traceback
+            self.complain("internal error (please report it): %s: %s" % (type(exc).__name__, one_line(exc)))
+        return False
+
+    def _notes(self):
+        """Between actions: show arm errors and undelivered messages, drop old statuses."""
+        for msg in self._backlog + self.link.poll():
+            if isinstance(msg, ErrorReport):
+                self.complain("note: arm R%d reported an error at G-code line %d: %s"
+                              % (msg.robot, msg.line, msg.message))
+            elif isinstance(msg, Undelivered):
+                self.complain("note: the hub never acknowledged %r after %d tries (is the "
+                              "communication hub running?)" % (_excerpt(msg.text.partition("\n")[0]),
+                                                               msg.tries))
+        self._backlog = []
+
+    # --- 1: demo --------------------------------------------------------------------
+
+    def demo(self, deadline=None):
+        from ambots.job import DEMO_MODEL
+        self.say("demo: %s" % DEMO_MODEL)
+        return (self.slice_model(data_path(DEMO_MODEL)) and self.send(deadline)
+                and self.start(deadline))
+
+    # --- 2: slice -------------------------------------------------------------------
+
+    def ask(self, question, default=None):
+        """One answer (stripped, quotes and ~ removed), ``default`` if empty."""
+        answer = self.input("%s [%s]: " % (question, default) if default else "%s: " % question).strip()
+        if len(answer) >= 2 and answer[0] == answer[-1] and answer[0] in "'\"":
+            answer = answer[1:-1]
+        return os.path.expanduser(answer) if answer else default
+
+    def ask_and_slice(self):
+        path = self.ask("model file (STL, OBJ, PLY, 3MF; mm)", self.model)
+        if not path:
+            self.complain("no file given: back to the menu")
+            return False
+        return self.slice_model(path)
+
+    def slice_model(self, path):
+        """Run the job pipeline on ``path`` and write the programs; the job
+        becomes the current one.  Raises AmbotsError / OSError."""
+        from ambots.job import run_job, write_job
+        self.say("slicing %s (cell %s, %s slicer, %s mode) ..." % (path, self.cell.name, self.slicer, self.mode))
+        t0 = time.monotonic()
+        job = run_job(path, self.cell, slicer=self.slicer, mode=self.mode, seam=self.seam)
+        out = self.out or os.path.join("out", os.path.splitext(os.path.basename(path))[0] or "model")
+        summary = write_job(job, out)
+        self.job, self.programs, self.directory, self.sent = job, dict(job.programs), out, False
+        self.print_times = {name: a["print_time_s"] for name, a in summary["arms"].items()}
+        self.say("sliced in %.1f s: model %.0f mm3 -> %s" % (time.monotonic() - t0, summary["model_volume_mm3"],
+                                                              ", ".join(self.programs)))
+        self.say("  %-8s %4s %10s %7s %7s %11s %9s %s" % ("arm", "id", "part mm3", "layers", "lines",
+                                                           "filament mm", "time s", "starts"))
+        for name, a in summary["arms"].items():
+            p = self.programs[name]
+            self.say("  %-8s R%-3d %10.0f %7d %7d %11.1f %9.0f %s" % (
+                name, a["id"], a["part_volume_mm3"], a["layers"], len(p.lines), a["extruded_filament_mm"],
+                a["print_time_s"], "by A1" if p.start_first else "after another arm"))
+        self.say("wrote %s" % ", ".join(os.path.join(out, n) for n in
+                                       [a + ".gcode" for a in self.programs] + ["job.json"]))
+        return True
+
+    # --- 3: send --------------------------------------------------------------------
+
+    def send(self, deadline=None):
+        """Send every program as one A5 chunk; True once the hub acknowledged them all."""
+        if not self.programs:
+            directory = self.ask("directory with the <arm>.gcode programs", self.directory)
+            if not directory:
+                self.complain("no directory given: slice a model first (2)")
+                return False
+            self.programs, self.directory, self.sent = load_programs(directory, self.cell), directory, False
+            self.say("loaded %s from %s" % (", ".join("%s.gcode" % n for n in self.programs), directory))
+        chunk = next(self._chunk_ids) % (MAX_U32 + 1)
+        messages = [LoadChunk(p.arm.id, p.text, chunk_id=chunk) for p in self.programs.values()]
+        for p, msg in zip(self.programs.values(), messages):      # all checked before any is sent
+            self.link.send(msg)
+            self.say("  %-14s A5 chunk C%d: %d lines, %d bytes" % (_label(p.arm) + ":", chunk, len(p.lines),
+                                                                 len(msg.gcode)))
+        self._drop_statuses()
+        self.sent = self.wait_for_hub("the G-code", deadline)
+        if self.sent:
+            self.say("the hub acknowledged the G-code of %s" % ", ".join(self.programs))
+        return self.sent
+
+    def wait_for_hub(self, what, deadline=None):
+        """Wait until the hub has acknowledged everything sent (keeping what
+        arrives meanwhile for :meth:`follow`); False and a line if it has not
+        by ``deadline`` (default: ``ack_timeout`` from now) or gave up."""
+        t0 = self.clock()
+        end = t0 + self.ack_timeout if deadline is None else deadline
+        while self.link.pending():
+            for msg in self.link.poll():
+                if isinstance(msg, Undelivered):
+                    self.complain("error: the hub never acknowledged %r after %d tries (is the "
+                                  "communication hub running?)" % (_excerpt(msg.text.partition("\n")[0]),
+                                                                   msg.tries))
+                    return False
+                self._backlog.append(msg)
+            now = self.clock()
+            if now >= end:
+                self.complain("error: the hub has not acknowledged %s after %.0f s (is the communication "
+                              "hub running?); still trying in the background" % (what, now - t0))
+                return False
+            self.link.wait(min(self.poll_period, end - now))
+        return True
+
+    def _drop_statuses(self):
+        """Forget statuses received so far: they are about an earlier job."""
+        self._backlog = [m for m in self._backlog + self.link.poll() if not isinstance(m, Status)]
+
+    # --- 4: start -------------------------------------------------------------------
+
+    def start(self, deadline=None):
+        """A1 to the arms that start first, then :meth:`follow`; True if every arm got DONE."""
+        if not self.programs:
+            self.complain("nothing to start: slice a model (2) or send G-code (3) first")
+            return False
+        if not self.sent:
+            self.say("the G-code has not been sent yet: sending it first")
+            if not self.send(deadline):
+                return False
+        self._drop_statuses()
+        first = [p for p in self.programs.values() if p.start_first]
+        for p in first:
+            self.link.send(Start(p.arm.id))
+        rest = [p for p in self.programs.values() if not p.start_first]
+        self.say("A1 sent to %s%s" % (", ".join(_label(p.arm) for p in first),
+                                      "; %s start when the arm before them is done" % ", ".join(
+                                          _label(p.arm) for p in rest) if rest else ""))
+        if not self.wait_for_hub("the start command", deadline):
+            return False
+        return self.follow(deadline)
+
+    def follow(self, deadline=None):
+        """Print the arms' progress until every arm of the job is DONE (True)
+        or one fails or ``deadline`` (default: :attr:`timeout` from now, or
+        never) passes (False, the reason on the error stream)."""
+        t0 = self.clock()
+        if deadline is None and self.timeout is not None:
+            deadline = t0 + self.timeout
+        self.say("following the print%s (Ctrl-C: back to the menu, the arms go on)" % (
+            "" if deadline is None else ", at most %.0f s" % (deadline - t0)))
+        tracker = JobTracker(self.programs)
+        grace_end = None
+        while True:
+            incoming, self._backlog = self._backlog + self.link.poll(), []
+            for msg in incoming:
+                for line in tracker.update(msg):
+                    self.say(line)
+            now = self.clock()
+            if tracker.outcome is True:
+                self.say("print finished: every arm is DONE (%s) after %.1f s" % (
+                    ", ".join(_label(p.arm) for p in self.programs.values()), now - t0))
+                return True
+            if tracker.failed:
+                if tracker.awaiting_report and grace_end is None:
+                    grace_end = now + self.error_grace      # the A11 saying why may follow the status
+                if not tracker.awaiting_report or now >= grace_end:
+                    self.complain("print failed: %s" % tracker.outcome)
+                    return False
+            if deadline is not None and now >= deadline:
+                waiting = ["%s %s" % (_label(tracker.programs[i].arm), s.name if s is not None else "silent")
+                           for i, s in tracker.state.items() if s != ArmState.DONE]
+                self.complain("print failed: timed out after %.0f s waiting for %s"
+                              % (now - t0, ", ".join(waiting)))
+                return False
+            ends = [t - now for t in (deadline, grace_end) if t is not None]
+            self.link.wait(min([self.poll_period] + ends))
+
+    # --- --print --------------------------------------------------------------------
+
+    def print_job(self, model=None, timeout=None):
+        """Slice ``model`` (default: ``self.model``, else the demo model),
+        send, start and follow; the exit status (0 done, 1 failed, 2 bad input).
+        ``timeout`` (s) covers sending, starting and printing; default
+        :data:`DEFAULT_TIMEOUT_BASE_S` + twice the longest estimated print time."""
+        from ambots.job import DEMO_MODEL
+        try:
+            self.slice_model(model or self.model or data_path(DEMO_MODEL))
+        except (AmbotsError, OSError) as exc:
+            self.complain("error: %s" % one_line(exc))
+            return EXIT_BAD_INPUT
+        if timeout is None:
+            timeout = DEFAULT_TIMEOUT_BASE_S + 2 * max(self.print_times.values(), default=0.0)
+        deadline = self.clock() + timeout
+        try:
+            ok = self.send(deadline) and self.start(deadline)
+        except (AmbotsError, OSError) as exc:
+            self.complain("error: %s" % one_line(exc))
+            return EXIT_FAILED
+        return EXIT_OK if ok else EXIT_FAILED
+
+
+# -------------------------------------------------------------------- the command line
+
+def build_parser(prog="front_end"):
+    p = argparse.ArgumentParser(
+        prog=prog, description="The ambots front end: the menu (1 start demo, 2 slice an STL file, 3 send "
+                               "G-code to the arms, 4 start printing, 5 quit), or with --print one whole "
+                               "job: slice, send, start, wait; exit 0 when every arm is done, 1 on an arm's "
+                               "error or the timeout, 2 on a bad model or cell.")
+    p.add_argument("--model", help="model file, mm: choice 2's default answer, and what --print prints "
+                                   "(default for --print: the demo cube)")
+    p.add_argument("--cell", help="cell YAML (default: config/cells/kinova_ur10.yaml)")
+    p.add_argument("--slicer", choices=("builtin", "prusa"), default="builtin")
+    p.add_argument("--mode", choices=("concurrent", "sequential"), default="concurrent")
+    p.add_argument("--out", help="output folder of the programs (default: out/<model stem>)")
+    p.add_argument("--print", dest="print_job", action="store_true",
+                   help="run one whole job without the menu and exit with its status")
+    p.add_argument("--timeout", type=float,
+                   help="s to wait for the print to finish (--print default: %.0f + twice the longest "
+                        "estimated print time; menu default: no limit)" % DEFAULT_TIMEOUT_BASE_S)
+    return p
+
+
+def menu_from_args(args, link, cell, **kw):
+    """A :class:`Menu` configured by :func:`build_parser`'s ``args``."""
+    return Menu(link, cell, model=args.model, out=args.out, slicer=args.slicer, mode=args.mode,
+                timeout=None if args.print_job else args.timeout, **kw)

@@ -1,0 +1,48 @@
+"""ROS side of the front end: moves the strings of
+:class:`ambots.frontend.ReliableLink` -- a publisher on ``topics.HUB_TOPIC``
+(the hub knows the front end by its node name ``/front_end``), a subscriber
+on ``topics.FRONT_END_TOPIC`` (the hub's acks of our messages, and the arms'
+A10/A11 it forwards, which the link acknowledges with ``A8 R0 Q<q> S1000``
+back to the hub), and a timer for retransmissions."""
+import rospy
+from std_msgs.msg import String
+
+from ambots import topics
+from ambots.frontend import ReliableLink
+
+
+class RosLink(ReliableLink):
+    """A :class:`~ambots.frontend.ReliableLink` over ROS topics; call after
+    ``rospy.init_node(topics.FRONT_END_NODE...)``.  ``retry_period`` (s):
+    how often due retransmissions are looked for; other keywords go to
+    :class:`~ambots.frontend.ReliableLink`."""
+
+    def __init__(self, retry_period=0.05, **kw):
+        self._pub = rospy.Publisher(topics.HUB_TOPIC, String, queue_size=100)
+        super().__init__(self._publish, **kw)
+        self._sub = rospy.Subscriber(topics.FRONT_END_TOPIC, String, self._on_message, queue_size=1000)
+        self._timer = rospy.Timer(rospy.Duration(retry_period), self._on_timer)
+
+    def _publish(self, text):
+        self._pub.publish(String(text))
+
+    def _on_message(self, msg):
+        self.receive_text(msg.data)
+
+    def _on_timer(self, _event):
+        self.tick()
+
+    def wait_for_hub(self, timeout):
+        """Wait up to ``timeout`` s until the hub is connected both ways;
+        False if it is not (messages are retried anyway)."""
+        deadline = rospy.get_time() + timeout
+        while not rospy.is_shutdown() and rospy.get_time() < deadline:
+            if self._pub.get_num_connections() > 0 and self._sub.get_num_connections() > 0:
+                return True
+            rospy.sleep(0.02)
+        return False
+
+    def close(self):
+        self._timer.shutdown()
+        self._sub.unregister()
+        self._pub.unregister()

@@ -1,0 +1,459 @@
+"""The front end's menu and reliable link (ambots.frontend), without ROS.
+
+The menu talks through :class:`FakeLink`: a real ReliableLink whose far side
+is an in-memory stand-in for the hub that records every A-series string the
+front end transmits, acknowledges its numbered messages as the hub does
+(``A8 R1000 Q<q> S0``) and, after an A1, feeds scripted A10/A11 replies as
+the hub forwards them (``S0`` and the hub's own numbering).  Time is fake:
+a wait with nothing to deliver lets the clock run.
+The default cell: kinova = R1, ur10 = R2."""
+import itertools
+import os
+from collections import deque
+from dataclasses import replace
+
+import pytest
+
+from ambots import topics
+from ambots.config import default_cell_path, load_cell
+from ambots.frontend import (CHOICES, EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, Menu, ReliableLink,
+                             Undelivered, build_parser, load_programs, menu_from_args)
+from ambots.job import run_job, write_job
+from ambots.protocol import (Ack, ArmState, ErrorReport, LoadChunk, Start, Status, decode, encode)
+from shapes import cube  # tests/unit/shapes.py
+
+FE = topics.FRONT_END_ID
+HUB_FIRST_Q = 7000
+
+
+class FakeLink(ReliableLink):
+    """A ReliableLink wired to an in-memory hub (see the module docstring).
+    ``replies``: {robot id: [Status / ErrorReport, ...]} fed after that
+    arm's A1; ``ack``: whether the hub acknowledges; ``interrupt``: a wait
+    with nothing to deliver raises KeyboardInterrupt (the user's Ctrl-C)."""
+
+    def __init__(self, replies=None, ack=True, interrupt=False):
+        self.now = 0.0
+        super().__init__(self._hub_receives, clock=lambda: self.now, first_seq=500)
+        self.sent = []                 # every string the front end transmitted
+        self.replies, self.ack, self.interrupt = dict(replies or {}), ack, interrupt
+        self._queue = deque()
+        self._hub_q = itertools.count(HUB_FIRST_Q)
+
+    def _hub_receives(self, text):
+        self.sent.append(text)
+        msg = decode(text)
+        if isinstance(msg, Ack):
+            return
+        if self.ack:
+            self._queue.append(encode(Ack(FE, msg.seq, topics.HUB_ID)))
+        if isinstance(msg, Start):
+            self.feed(*self.replies.pop(msg.robot, []))
+
+    def feed(self, *messages):
+        """Queue messages as the hub forwards them to the front end."""
+        for m in messages:
+            self._queue.append(encode(replace(m, sender=topics.HUB_ID, seq=next(self._hub_q))))
+
+    def wait(self, timeout):
+        if self._queue:
+            while self._queue:
+                self.receive_text(self._queue.popleft())
+        elif self.interrupt:
+            raise KeyboardInterrupt
+        else:
+            self.now += max(timeout, 1e-3)
+
+    def messages(self, kind=None):
+        """What the front end sent, decoded, A8s left out unless asked for."""
+        out = [decode(t) for t in self.sent]
+        return [m for m in out if (isinstance(m, kind) if kind else not isinstance(m, Ack))]
+
+
+class Session:
+    """A Menu over a FakeLink, answering from a list and recording its lines."""
+
+    def __init__(self, answers, cell, link=None, **kw):
+        self.answers = list(answers)
+        self.prompts, self.lines, self.errors = [], [], []
+        self.link = link or FakeLink()
+        kw.setdefault("error", self.errors.append)
+        self.menu = Menu(self.link, cell, input=self.ask, output=self.lines.append, clock=self.link.clock, **kw)
+
+    def ask(self, prompt):
+        self.prompts.append(prompt)
+        if not self.answers:
+            raise EOFError
+        answer = self.answers.pop(0)
+        if isinstance(answer, BaseException):
+            raise answer
+        return answer
+
+    def run(self):
+        return self.menu.run()
+
+    @property
+    def text(self):
+        return "\n".join(self.lines + self.errors)
+
+    def menus_shown(self):
+        return self.lines.count("  5) quit")
+
+
+@pytest.fixture(scope="module")
+def cell():
+    return load_cell(default_cell_path())
+
+
+@pytest.fixture(scope="module")
+def cube_stl(tmp_path_factory):
+    path = tmp_path_factory.mktemp("models") / "cube20.stl"
+    cube().export(str(path))
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def jobs(cell, cube_stl):
+    """The cube sliced once per mode (reused by the tests that do not slice)."""
+    return {mode: run_job(cube_stl, cell, mode=mode) for mode in ("concurrent", "sequential")}
+
+
+def with_job(session, job):
+    session.menu.job, session.menu.programs = job, dict(job.programs)
+    return session
+
+
+def status(robot, state, layer=0, line=0, percent=0.0):
+    return Status(robot, ArmState(state), layer, line, percent)
+
+
+def done(robot, job):
+    p = [p for p in job.programs.values() if p.arm.id == robot][0]
+    return status(robot, ArmState.DONE, p.layers - 1, len(p.lines), 100.0)
+
+
+# ------------------------------------------------------------------ the menu
+
+def test_the_menu_has_the_original_five_choices_in_order(cell):
+    s = Session(["5"], cell)
+    assert s.run() == EXIT_OK
+    assert [k for k, _ in CHOICES] == ["1", "2", "3", "4", "5"]
+    assert s.lines[-6:-1] == ["  1) start demo (cut, slice, send and start the demo cube)",
+                              "  2) slice an STL file", "  3) send G-code to the arms",
+                              "  4) start printing", "  5) quit"]
+    for key, text in CHOICES:
+        assert "  %s) %s" % (key, text) in s.lines
+    assert s.prompts == ["choice [1-5]: "] and s.lines[-1] == "bye"
+    assert s.link.sent == []
+
+
+@pytest.mark.parametrize("answer, message", [
+    ("9", "'9' is not a choice: answer 1, 2, 3, 4 or 5"),
+    ("abc", "'abc' is not a choice: answer 1, 2, 3, 4 or 5"),
+    ("", "no choice given: answer 1, 2, 3, 4 or 5"),
+    ("   ", "no choice given: answer 1, 2, 3, 4 or 5"),
+    ("0", "'0' is not a choice"),
+])
+def test_a_wrong_choice_gets_a_message_and_the_menu_again(cell, answer, message):
+    s = Session([answer, "5"], cell)
+    assert s.run() == EXIT_OK
+    assert len(s.errors) == 1 and s.errors[0].startswith(message)
+    assert s.menus_shown() == 2 and len(s.prompts) == 2
+    assert s.link.sent == []
+
+
+def test_end_of_input_and_ctrl_c_at_the_prompt_quit(cell):
+    assert Session([], cell).run() == EXIT_OK
+    assert Session([KeyboardInterrupt()], cell).run() == EXIT_OK
+    s = Session(["2"], cell)                   # end of input at the file question
+    assert s.run() == EXIT_OK and s.errors == [] and s.lines[-1] == "bye"
+    s = Session(["2", KeyboardInterrupt(), "5"], cell)
+    assert s.run() == EXIT_OK and "interrupted: back to the menu (a print that was started goes on)" in s.lines
+
+
+def test_an_unexpected_exception_is_one_line_and_the_menu_goes_on(cell, monkeypatch):
+    s = Session(["2", "x.stl", "5"], cell)
+    monkeypatch.setattr(s.menu, "slice_model", lambda path: 1 / 0)
+    assert s.run() == EXIT_OK
+    assert s.errors == ["internal error (please report it): ZeroDivisionError: division by zero"]
+    assert s.menus_shown() == 2
+
+
+def test_a_missing_file_at_choice_2_names_the_path_and_the_menu_goes_on(cell, tmp_path):
+    missing = str(tmp_path / "no such dir" / "nope.stl")
+    s = Session(["2", missing, "5"], cell)
+    assert s.run() == EXIT_OK
+    assert s.errors == ["error: %s: no such file" % missing]
+    assert s.prompts[1] == "model file (STL, OBJ, PLY, 3MF; mm): "
+    assert s.menus_shown() == 2 and "Traceback" not in s.text
+
+
+@pytest.mark.parametrize("content, name, expected", [
+    (b"solid x\nendsolid x\n", "empty.stl", "contains no triangles"),
+    (b"hello", "notes.txt", "unknown model format '.txt'"),
+])
+def test_a_bad_model_is_one_line_and_the_menu_goes_on(cell, tmp_path, content, name, expected):
+    bad = tmp_path / name
+    bad.write_bytes(content)
+    s = Session(["2", str(bad), "9", "5"], cell)
+    assert s.run() == EXIT_OK
+    assert len(s.errors) == 2 and s.errors[0].startswith("error: ") and expected in s.errors[0]
+    assert "\n" not in s.errors[0] and s.menus_shown() == 3
+
+
+def test_a_model_too_large_for_the_bed_says_by_how_much(cell, tmp_path):
+    big = tmp_path / "big.stl"
+    cube().apply_scale([17.5, 1, 1]).export(str(big))
+    s = Session(["2", str(big), "5"], cell)
+    s.run()
+    assert s.errors == ["error: big.stl: does not fit: model is 350.0 mm wide in x, bed is 300.0 mm: "
+                        "50.0 mm too large"]
+
+
+def test_no_file_given_at_choice_2(cell):
+    s = Session(["2", "", "5"], cell)
+    s.run()
+    assert s.errors == ["no file given: back to the menu"]
+
+
+def test_choice_2_slices_the_model_and_writes_the_programs(cell, cube_stl, tmp_path):
+    out = tmp_path / "out"
+    s = Session(["2", "", "5"], cell, model=cube_stl, out=str(out))      # empty answer: --model
+    assert s.run() == EXIT_OK and s.errors == []
+    assert s.prompts[1] == "model file (STL, OBJ, PLY, 3MF; mm) [%s]: " % cube_stl
+    assert sorted(os.listdir(out)) == ["job.json", "kinova.gcode", "kinova.stl", "ur10.gcode", "ur10.stl"]
+    menu = s.menu
+    assert list(menu.programs) == ["kinova", "ur10"] and not menu.sent
+    assert (out / "ur10.gcode").read_text() == menu.programs["ur10"].text
+    assert any(l.startswith("  kinova   R1 ") for l in s.lines)
+    assert "programs: kinova, ur10 in %s, not sent" % out in s.lines
+    assert s.link.sent == []            # slicing sends nothing
+
+
+def test_the_default_output_folder_is_out_slash_the_model_stem(cell, cube_stl, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    s = Session(["2", "'%s'" % cube_stl, "5"], cell)        # quotes around a path are fine
+    s.run()
+    assert s.errors == [] and (tmp_path / "out" / "cube20" / "kinova.gcode").is_file()
+
+
+def test_choice_3_sends_one_A5_per_arm_with_the_program_as_payload(cell, jobs):
+    job = jobs["concurrent"]
+    s = with_job(Session(["3", "5"], cell), job)
+    assert s.run() == EXIT_OK and s.errors == []
+    a5 = s.link.messages(LoadChunk)
+    assert [m.robot for m in a5] == [1, 2] and len(s.link.messages()) == 2
+    for m, text in zip(a5, s.link.sent):
+        program = job.programs[cell.arms[m.robot - 1].name]
+        assert decode(encode(m)) == m and encode(m) == text
+        assert m.gcode == program.text                    # directives (;@A9 ...) included
+        assert any(l.startswith(";@A9 ") for l in m.gcode.splitlines())
+        assert m.sender == FE and m.chunk_id == a5[0].chunk_id
+    assert a5[0].seq != a5[1].seq
+    assert s.menu.sent and "the hub acknowledged the G-code of kinova, ur10" in s.lines
+
+
+def test_choice_3_without_a_job_loads_the_programs_of_a_directory(cell, jobs, tmp_path):
+    write_job(jobs["sequential"], str(tmp_path / "seq"))
+    s = Session(["3", str(tmp_path / "seq"), "5"], cell)
+    assert s.run() == EXIT_OK and s.errors == []
+    assert s.prompts[1] == "directory with the <arm>.gcode programs: "
+    a5 = s.link.messages(LoadChunk)
+    for m, arm in zip(a5, ("kinova", "ur10")):
+        assert m.gcode == (tmp_path / "seq" / (arm + ".gcode")).read_text()
+    # the ;@A1 R2 directive at the end of kinova's program: ur10 is started by kinova
+    assert [p.start_first for p in s.menu.programs.values()] == [True, False]
+
+
+def test_choice_3_with_a_bad_directory_is_one_line(cell, tmp_path):
+    (tmp_path / "kinova.gcode").write_text("G1 X1 Y1\nA1 R2\n")
+    s = Session(["3", str(tmp_path / "nothing here"), "3", str(tmp_path), "5"], cell)
+    assert s.run() == EXIT_OK
+    assert s.errors[0] == "error: %s: no such directory" % (tmp_path / "nothing here")
+    assert s.errors[1].startswith("error: %s:2: A-series command in a program file" % (tmp_path / "kinova.gcode"))
+    assert s.link.sent == []
+
+
+def test_load_programs_checks_the_directives(cell, jobs, tmp_path):
+    write_job(jobs["concurrent"], str(tmp_path))
+    text = (tmp_path / "ur10.gcode").read_text()
+    assert len(load_programs(str(tmp_path), cell)) == 2
+    (tmp_path / "ur10.gcode").write_text(text.replace(";@A9 R2 W1", ";@A9 R2 W7", 1))
+    with pytest.raises(Exception, match=r"ur10\.gcode:\d+: directive names R7, not an arm of cell kinova_ur10"):
+        load_programs(str(tmp_path), cell)
+    (tmp_path / "ur10.gcode").write_text(text.replace(";@A9 R2 W1", ";@A9 R2 W1 Q", 1))
+    with pytest.raises(Exception, match=r"ur10\.gcode:\d+: bad directive"):
+        load_programs(str(tmp_path), cell)
+
+
+def test_choice_4_starts_every_arm_in_concurrent_mode_and_completes_when_all_are_done(cell, jobs):
+    job = jobs["concurrent"]
+    link = FakeLink(replies={1: [status(1, 1), status(1, 1, 40, 2000, 45.0), done(1, job)],
+                             2: [status(2, 1), done(2, job)]})
+    s = with_job(Session(["3", "4", "5"], cell, link=link), job)
+    assert s.run() == EXIT_OK and s.errors == []
+    sent = link.messages()
+    assert [type(m).__name__ for m in sent] == ["LoadChunk", "LoadChunk", "Start", "Start"]
+    assert [m.robot for m in link.messages(Start)] == [1, 2]
+    assert any(l.startswith("print finished: every arm is DONE (kinova (R1), ur10 (R2))") for l in s.lines)
+    progress = [l for l in s.lines if l.startswith("  kinova (R1):") and " layer " in l]
+    assert len(progress) == 3 and "PRINTING" in progress[1] and "45.0 %" in progress[1]
+    assert "DONE" in progress[2]
+    # the front end acknowledged every status the hub forwarded (A8 R0 Q<hub's q> S1000)
+    acks = link.messages(Ack)
+    assert [(a.robot, a.sender) for a in acks] == [(0, FE)] * 5
+    assert sorted(a.acked_seq for a in acks) == list(range(HUB_FIRST_Q, HUB_FIRST_Q + 5))
+
+
+def test_choice_4_in_sequential_mode_starts_only_the_first_arm(cell, jobs):
+    job = jobs["sequential"]
+    link = FakeLink(replies={1: [status(1, 1), done(1, job), status(2, 1), done(2, job)]})
+    s = with_job(Session(["4", "5"], cell, link=link), job)      # not sent yet: 4 sends first
+    assert s.run() == EXIT_OK and s.errors == []
+    assert "the G-code has not been sent yet: sending it first" in s.lines
+    assert [type(m).__name__ for m in link.messages()] == ["LoadChunk", "LoadChunk", "Start"]
+    assert link.messages(Start)[0].robot == 1
+    assert any(l.startswith("A1 sent to kinova (R1); ur10 (R2) start") for l in s.lines)
+    assert any(l.startswith("print finished") for l in s.lines)
+
+
+def test_choice_4_is_not_finished_until_every_arm_is_done(cell, jobs):
+    job = jobs["concurrent"]
+    link = FakeLink(replies={1: [done(1, job)], 2: [status(2, 1)]}, interrupt=True)
+    s = with_job(Session(["4", "5"], cell, link=link), job)
+    assert s.run() == EXIT_OK
+    assert not any(l.startswith("print finished") for l in s.lines)
+    # Ctrl-C while following: back to the menu, which goes on
+    assert "interrupted: back to the menu (a print that was started goes on)" in s.lines
+    assert s.menus_shown() == 2
+
+
+def test_choice_4_fails_on_an_A11_naming_the_line_of_the_program(cell, jobs):
+    job = jobs["concurrent"]
+    link = FakeLink(replies={1: [status(1, 1)],
+                             2: [status(2, 1), ErrorReport(2, 120, "nozzle temperature \"low\"")]})
+    s = with_job(Session(["3", "4", "5"], cell, link=link), job)
+    assert s.run() == EXIT_OK
+    [error] = s.errors
+    assert error.startswith('print failed: ur10 (R2) error at G-code line 120: nozzle temperature "low"\n'
+                            "    line 120 of ur10's program: %s" % job.programs["ur10"].lines[119])
+    assert s.menus_shown() == 3
+
+
+def test_an_error_status_waits_for_the_A11_that_says_why(cell, jobs):
+    job = jobs["concurrent"]
+    link = FakeLink(replies={1: [status(1, 1), status(1, 5, 3, 77, 10.0), ErrorReport(1, 77, "unreachable")]})
+    s = with_job(Session(["4", "5"], cell, link=link), job)
+    s.run()
+    assert s.errors[0].startswith("print failed: kinova (R1) error at G-code line 77: unreachable")
+    # without an A11: the status alone, after a grace period
+    link = FakeLink(replies={1: [status(1, 5, 3, 77, 10.0)]})
+    s = with_job(Session(["4", "5"], cell, link=link), job)
+    s.run()
+    assert s.errors[0].startswith("print failed: kinova (R1) error at G-code line 77: reported state ERROR")
+
+
+def test_choice_4_with_nothing_to_start(cell):
+    s = Session(["4", "5"], cell)
+    s.run()
+    assert s.errors == ["nothing to start: slice a model (2) or send G-code (3) first"]
+
+
+def test_a_hub_that_does_not_acknowledge_is_reported(cell, jobs):
+    s = with_job(Session(["3", "5"], cell, link=FakeLink(ack=False), ack_timeout=10.0), jobs["concurrent"])
+    assert s.run() == EXIT_OK
+    assert s.errors == ["error: the hub has not acknowledged the G-code after 10 s (is the communication "
+                        "hub running?); still trying in the background"]
+    assert not s.menu.sent
+
+
+def test_statuses_of_an_earlier_job_are_not_taken_for_this_one(cell, jobs):
+    job = jobs["concurrent"]
+    link = FakeLink(replies={1: [done(1, job)], 2: [done(2, job)]})
+    link.feed(status(1, 4, 0, 0, 100.0), status(2, 4, 0, 0, 100.0))      # old DONEs
+    s = with_job(Session(["3", "4", "5"], cell, link=link, timeout=30), job)
+    s.run()
+    assert any(l.startswith("print finished") for l in s.lines)
+    link = FakeLink(replies={1: [done(1, job)]})
+    s = with_job(Session(["3", "4", "5"], cell, link=link, timeout=30), job)
+    link.feed(status(2, 4, 0, 0, 100.0))
+    s.run()
+    assert s.errors and s.errors[0].startswith("print failed: timed out after 30 s waiting for ur10 (R2)")
+
+
+# ------------------------------------------------------------------ --print
+
+def test_print_job_exits_0_when_every_arm_is_done(cell, cube_stl, tmp_path):
+    # replies are known only after slicing: answer the A1s with DONE at the program's end
+    class DoneLink(FakeLink):
+        def _hub_receives(self, text):
+            msg = decode(text)
+            if isinstance(msg, LoadChunk):
+                n = len(msg.gcode.splitlines())
+                self.replies[msg.robot] = [status(msg.robot, 1), status(msg.robot, 4, 99, n, 100.0)]
+            super()._hub_receives(text)
+
+    s = Session([], cell, link=DoneLink(), model=cube_stl, out=str(tmp_path))
+    assert s.menu.print_job() == EXIT_OK and s.errors == []
+    assert s.prompts == [] and any(l.startswith("print finished") for l in s.lines)
+
+
+def test_print_job_exits_1_on_an_arm_error_and_on_the_timeout(cell, cube_stl, tmp_path):
+    link = FakeLink(replies={2: [ErrorReport(2, 0, "emergency stop")]})
+    s = Session([], cell, link=link, model=cube_stl, out=str(tmp_path))
+    assert s.menu.print_job() == EXIT_FAILED
+    assert s.errors == ["print failed: ur10 (R2) error at G-code line 0: emergency stop"]
+    s = Session([], cell, model=cube_stl, out=str(tmp_path))
+    assert s.menu.print_job(timeout=60) == EXIT_FAILED
+    assert s.errors == ["print failed: timed out after 60 s waiting for kinova (R1) silent, ur10 (R2) silent"]
+
+
+def test_print_job_exits_2_on_a_bad_model_with_one_line(cell, tmp_path):
+    s = Session([], cell, model=str(tmp_path / "nope.stl"))
+    assert s.menu.print_job() == EXIT_BAD_INPUT
+    assert s.errors == ["error: %s: no such file" % (tmp_path / "nope.stl")]
+    assert s.link.sent == []
+
+
+def test_flags(cell):
+    args = build_parser().parse_args(["--model", "m.stl", "--mode", "sequential", "--slicer", "prusa",
+                                      "--out", "o", "--timeout", "5"])
+    menu = menu_from_args(args, FakeLink(), cell)
+    assert (menu.model, menu.mode, menu.slicer, menu.out, menu.timeout) == ("m.stl", "sequential", "prusa", "o", 5)
+    args = build_parser().parse_args(["--print"])
+    assert args.print_job and args.model is None and menu_from_args(args, FakeLink(), cell).timeout is None
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--mode", "parallel"])
+
+
+# ------------------------------------------------------------------ the link
+
+def test_link_numbers_retries_until_acked_and_gives_up():
+    sent, now = [], [0.0]
+    link = ReliableLink(sent.append, clock=lambda: now[0], first_seq=41, max_tries=3)
+    assert link.send(Start(2)) == 41 and sent == ["A1 R2 S1000 Q41"]
+    link.send(Start(1))
+    for t in (0.1, 0.25, 0.7):              # due after 0.2 s, then 0.4 s later
+        now[0] = t
+        link.tick()
+    assert sent.count("A1 R2 S1000 Q41") == 3 and link.pending() == 2
+    link.receive_text("A8 R1000 Q41 S0")    # the hub's ack
+    link.receive_text("A8 R7 Q42 S0")       # not for us
+    assert link.pending() == 1
+    now[0] = 10.0
+    link.tick()
+    assert link.poll() == [Undelivered("A1 R1 S1000 Q42", 3)] and link.pending() == 0
+
+
+def test_link_acknowledges_forwarded_reports_and_drops_duplicates():
+    sent = []
+    link = ReliableLink(sent.append, first_seq=1)
+    text = "A10 R1 T1 L2 N30 P4.5 S0 Q9"
+    link.receive_text(text)
+    link.receive_text(text)                  # a retry by the hub: acked again, delivered once
+    link.receive_text('A11 R2 N5 S0 Q10 "jam"')
+    link.receive_text("A10 R1 T9 L0 N0 P0 S0 Q11")   # malformed: not acknowledged
+    assert sent == ["A8 R0 Q9 S1000", "A8 R0 Q9 S1000", "A8 R0 Q10 S1000"]
+    assert link.poll() == [Status(1, ArmState.PRINTING, 2, 30, 4.5, sender=0, seq=9),
+                           ErrorReport(2, 5, "jam", sender=0, seq=10)]
+    assert link.poll() == [] and len(link.malformed) == 1
