@@ -34,12 +34,12 @@ import numpy as np
 
 from ambots.gcode import Segment, parse_gcode_text
 from ambots.program import directive, sanitize_gcode
-from ambots.protocol import MoveTo, Start, WaitFor
+from ambots.protocol import MoveTo, SendPosition, Start, WaitFor
 
 __all__ = ["ArmProgram", "build_programs", "park_positions_mm", "DEFAULT_ZONE_MM"]
 
-#: default width (mm) of the seam zone on each side of a seam: two nozzles
-#: printing at the same time stay at least this far apart
+#: a seam-zone width (mm) for tests that want a fixed one; programs use the
+#: arms' geometry by default (:func:`seam_zone_for`)
 DEFAULT_ZONE_MM = 60.0
 
 
@@ -138,7 +138,7 @@ def _distance_to_planes(points, planes):
     return points @ normals.T - offs
 
 
-def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=DEFAULT_ZONE_MM, park=None):
+def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=None):
     """Build every arm's program.
 
     Parameters
@@ -147,7 +147,9 @@ def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=DEFAULT_ZONE_
     parts : the :class:`~ambots.partition.Part` list (gives arm order and seam planes)
     cell : the cell (park positions come from the arms' home poses)
     mode : ``"concurrent"`` or ``"sequential"``
-    zone_mm : seam-zone width on each side of a seam (concurrent mode)
+    zone_mm : how far apart (mm) two nozzles across a seam must stay
+        (concurrent mode); default: from the arms' real geometry,
+        :func:`ambots.collision.seam_zone_mm`
     park : optional {arm name: (x, y, z) mm} overriding the park positions
 
     Returns {arm name: :class:`ArmProgram`}, in the parts' order.
@@ -160,7 +162,23 @@ def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=DEFAULT_ZONE_
     n_layers = max([max(layers) + 1 for _, layers in read.values() if layers] or [0])
     if mode == "sequential":
         return _sequential(arms, read, park, n_layers)
+    if zone_mm is None:
+        zone_mm = seam_zone_for(cell, arms)
     return _concurrent(arms, parts, read, park, n_layers, zone_mm)
+
+
+_ZONES = {}
+
+
+def seam_zone_for(cell, arms):
+    """Seam zone (mm) of these arms of the cell, from their geometry (cached)."""
+    from ambots.collision import seam_zone_mm
+    if len(arms) < 2:
+        return 0.0
+    key = (cell.path if hasattr(cell, "path") else cell.name, tuple(a.name for a in arms))
+    if key not in _ZONES:
+        _ZONES[key] = float(seam_zone_mm(cell, arms))
+    return _ZONES[key]
 
 
 def _finish(w, arm, park):
@@ -204,23 +222,221 @@ def _colours(arms, adjacent):
 
 def _concurrent(arms, parts, read, park, n_layers, zone_mm):
     names = [a.name for a in arms]
-    # classify every segment: in the seam zone of a neighbour, or away from every seam
-    zone, far, adjacent = {}, {}, {n: set() for n in names}
+    planes = {p.arm.name: p.planes for p in parts}
+    neighbour_of = {p.arm.name: [a.name for a in arms if a is not p.arm] for p in parts}
+    # which arms share a seam with work near it
+    adjacent = {n: set() for n in names}
     for part in parts:
         name = part.arm.name
-        others = [a for a in arms if a is not part.arm]
+        _, layers = read[name]
+        for segs in layers.values():
+            pts = np.array([s.start for s in segs] + [s.end for s in segs], dtype=float)
+            d = _distance_to_planes(pts, part.planes)
+            near = (np.abs(d) < zone_mm).reshape(2, len(segs), -1).any(axis=0)
+            for j in np.where(near.any(axis=0))[0]:
+                other = neighbour_of[name][j]
+                adjacent[name].add(other)
+                adjacent[other].add(name)
+    colour = _colours(arms, adjacent)
+    if max(colour.values()) <= 1:
+        return _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent)
+    return _zone_phases(arms, parts, read, park, n_layers, zone_mm, colour)
+
+
+# ----------------------------------------------------------- banded sweep
+def _split_at_bands(seg, planes, w, k):
+    """Cut a segment where its distance to any seam plane crosses a band
+    boundary (multiples of ``w``); E is shared in proportion to length."""
+    a, b = np.array(seg.start, dtype=float), np.array(seg.end, dtype=float)
+    if not planes or np.allclose(a, b):
+        return [seg]
+    cuts = []
+    for n, off in planes:
+        fa, fb = float(n @ a - off), float(n @ b - off)
+        if abs(fb - fa) < 1e-12:
+            continue
+        lo, hi = sorted((fa, fb))
+        for m in range(int(np.floor(lo / w)) + 1, int(np.ceil(hi / w))):
+            if 1 <= m <= k - 1:
+                t = (m * w - fa) / (fb - fa)
+                if 1e-9 < t < 1 - 1e-9:
+                    cuts.append(t)
+    if not cuts:
+        return [seg]
+    ts = [0.0] + sorted(set(cuts)) + [1.0]
+    out = []
+    for t0, t1 in zip(ts[:-1], ts[1:]):
+        p0, p1 = a + (b - a) * t0, a + (b - a) * t1
+        out.append(seg._replace(start=tuple(p0), end=tuple(p1), e=seg.e * (t1 - t0)))
+    return out
+
+
+def _band_of(segs, planes, w, k):
+    """Band index (S,) of each segment from its midpoint's distance to the nearest seam."""
+    if not planes:
+        return np.full(len(segs), k - 1)
+    mid = np.array([(np.add(s.start, s.end)) / 2.0 for s in segs], dtype=float)
+    d = _distance_to_planes(mid, planes).min(axis=1)
+    return np.clip(np.floor(d / w), 0, k - 1).astype(int)
+
+
+def _seg_time(segs):
+    t = 0.0
+    for s in segs:
+        L = float(np.linalg.norm(np.subtract(s.end, s.start)))
+        f = s.feedrate if s.feedrate > 0 else 1800.0
+        t += (L if L > 0 else abs(s.e)) / f * 60.0
+    return t
+
+
+def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent):
+    """Two colours (every seam separates a colour-0 from a colour-1 arm).
+
+    Each arm's work is cut into bands by distance from its nearest seam:
+    band i (0 <= i < k-1) is [i w, (i+1) w) with w = zone / (k-1), band k-1
+    the rest.  In phase i of a layer one colour prints band i while the
+    other prints band k-1-i, so two nozzles across a seam are always at
+    least (k-1) w = zone apart.  Directions alternate with the layer (even
+    layers: colour 0 moves away from the seam, colour 1 towards it; odd
+    layers the reverse), so no arm ever crosses another's path at a layer
+    change.  Between phases the arm moving away first travels to its next
+    band (its *approach*), and the arm moving towards the seam waits for
+    that (an A9 on the approach line) before it approaches; an arm with no
+    work in its next band still moves there (a retreat), so the spacing
+    holds whatever the timing.  ``k`` (2..12) is chosen to minimise the
+    estimated makespan."""
+    names = [a.name for a in arms]
+    segs_by = {(a.name, k): segs for a in arms for k, segs in read[a.name][1].items()}
+    # choose k on the unsplit segments (midpoint distance, duration), vectorised
+    stats = {}
+    for a in arms:
+        for layer in range(n_layers):
+            segs = segs_by.get((a.name, layer), [])
+            if not segs:
+                continue
+            mid = np.array([np.add(s.start, s.end) / 2.0 for s in segs], dtype=float)
+            d = (_distance_to_planes(mid, planes[a.name]).min(axis=1) if planes[a.name]
+                 else np.full(len(segs), np.inf))
+            dur = np.array([_seg_time([s]) for s in segs])
+            stats[a.name, layer] = (d, dur)
+    best = None
+    for k in range(2, 13):
+        w = max(zone_mm, 1e-3) / (k - 1)
+        est = 0.0
+        for layer in range(n_layers):
+            phase_t = np.zeros(k)
+            for a in arms:
+                if (a.name, layer) not in stats:
+                    continue
+                d, dur = stats[a.name, layer]
+                band = np.clip(np.floor(d / w), 0, k - 1).astype(int)
+                per_band = np.bincount(band, weights=dur, minlength=k)
+                phases = np.array([_phase_of(b, colour[a.name], layer, k) for b in range(k)])
+                np.maximum.at(phase_t, phases, per_band)
+            est += phase_t.sum() + k * 0.5          # a barrier costs about half a second
+        if best is None or est < best[0] - 1e-9:
+            best = (est, k)
+    k = best[1]
+    w = max(zone_mm, 1e-3) / (k - 1)
+    steps = {}
+    for a in arms:
+        for layer in range(n_layers):
+            segs = [p for s in segs_by.get((a.name, layer), []) for p in _split_at_bands(s, planes[a.name], w, k)]
+            band = _band_of(segs, planes[a.name], w, k) if segs else np.zeros(0, dtype=int)
+            for b in range(k):
+                steps[a.name, layer, _phase_of(b, colour[a.name], layer, k)] = (
+                    b, [s for s, bb in zip(segs, band) if bb == b])
+    writers, step_end, approach_end, slots = {}, {}, {}, {}
+    n_wait = len(arms) - 1
+    for a in arms:
+        w_ = _Writer()
+        for line in _header(a, "concurrent", ["; seam zone %.1f mm, %d band(s) of %.1f mm per layer, colour %d"
+                                              % (zone_mm, k, w, colour[a.name])]):
+            w_.emit(line)
+        slots[a.name] = []
+        for layer in range(n_layers):
+            for p in range(k):
+                band, segs = steps[a.name, layer, p]
+                if p == 0:
+                    w_.emit(";LAYER_CHANGE")
+                    zs = [s.end[2] for q in range(k) for s in steps[a.name, layer, q][1]]
+                    w_.emit(";Z:%.3f" % (zs[-1] if zs else 0.0))
+                towards = p > 0 and band < steps[a.name, layer, p - 1][0]
+                if towards:       # wait until the neighbours moving away have approached their band
+                    for other in arms:
+                        if other.name in adjacent[a.name]:
+                            slots[a.name].append(("approach", other.name, layer, p, len(w_.lines)))
+                            w_.lines.append(None)
+                first = next((s for s in segs if s.start != s.end), None)
+                if first is not None:
+                    w_.travel_to(first.start)
+                elif p > 0 and not towards and w_.pos is not None:
+                    w_.travel_to(_retreat(w_.pos, planes[a.name], band, w))
+                if p > 0 and not towards and any(n in adjacent[a.name] for n in names):
+                    # tell the neighbours (A10 with position, via the hub) that the approach is done
+                    other = next(o for o in arms if o.name in adjacent[a.name])
+                    w_.emit(directive(SendPosition(other.id)))
+                approach_end[a.name, layer, p] = len(w_.lines)
+                w_.segments(segs)
+                step_end[a.name, layer, p] = len(w_.lines)
+                for other in arms:
+                    if other is not a:
+                        slots[a.name].append(("step", other.name, layer, p, len(w_.lines)))
+                        w_.lines.append(None)
+        _finish(w_, a, park)
+        writers[a.name] = w_
+    programs = {}
+    for a in arms:
+        w_ = writers[a.name]
+        for kind, other, layer, p, index in slots[a.name]:
+            target = (approach_end if kind == "approach" else step_end)[other, layer, p]
+            w_.lines[index] = directive(WaitFor(a.id, _arm_id(arms, other), line=target))
+        removed, _ = read[a.name]
+        programs[a.name] = ArmProgram(a, "concurrent", w_.lines, removed, n_layers, k, start_first=True)
+    return programs
+
+
+def _phase_of(band, colour, layer, k):
+    """Phase in which an arm of ``colour`` prints ``band`` on ``layer``."""
+    away = (colour + layer) % 2 == 0          # this arm sweeps away from the seam on this layer
+    return band if away else k - 1 - band
+
+
+def _arm_id(arms, name):
+    return next(a.id for a in arms if a.name == name)
+
+
+def _retreat(pos, planes, band, w):
+    """A point on the same side as ``pos`` just inside ``band`` (mm)."""
+    p = np.array(pos, dtype=float)
+    if not planes:
+        return tuple(p)
+    d = _distance_to_planes(p[None], planes)[0]
+    j = int(np.argmin(d))
+    n = np.asarray(planes[j][0], dtype=float)
+    want = band * w + min(2.0, w / 4)
+    if d[j] >= want:
+        return tuple(p)
+    q = p + n * (want - d[j])
+    return (float(q[0]), float(q[1]), float(p[2]))
+
+
+# ----------------------------------------------------------- zone phases
+def _zone_phases(arms, parts, read, park, n_layers, zone_mm, colour):
+    """More than two colours: each layer has one phase per colour; in phase
+    p the arms of colour p print their seam-zone moves while the others
+    print their moves away from every seam."""
+    names = [a.name for a in arms]
+    zone, far = {}, {}
+    for part in parts:
+        name = part.arm.name
         _, layers = read[name]
         for k, segs in layers.items():
             pts = np.array([s.start for s in segs] + [s.end for s in segs], dtype=float)
             d = _distance_to_planes(pts, part.planes)
-            near = (np.abs(d) < zone_mm).reshape(2, len(segs), -1).any(axis=0)     # (S, P)
-            in_zone = near.any(axis=1)
-            for j in np.where(near.any(axis=0))[0]:
-                adjacent[name].add(others[j].name)
-                adjacent[others[j].name].add(name)
+            in_zone = (np.abs(d) < zone_mm).reshape(2, len(segs), -1).any(axis=0).any(axis=1)
             zone[name, k] = [s for s, z in zip(segs, in_zone) if z]
             far[name, k] = [s for s, z in zip(segs, in_zone) if not z]
-    colour = _colours(arms, adjacent)
     k_phases = max(colour.values()) + 1
     # pass 1: the content of every (arm, layer, phase) step
     steps = {}

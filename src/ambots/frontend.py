@@ -2,7 +2,7 @@
 
 The menu of the original design, same five choices in the same order::
 
-    1) start demo (cut, slice, send and start the demo cube)
+    1) start demo (cut, slice, send and start the demo block)
     2) slice an STL file
     3) send G-code to the arms
     4) start printing
@@ -68,7 +68,7 @@ __all__ = ["CHOICES", "EXIT_OK", "EXIT_FAILED", "EXIT_BAD_INPUT", "Undelivered",
 
 #: the menu, in the original's order
 CHOICES = (
-    ("1", "start demo (cut, slice, send and start the demo cube)"),
+    ("1", "start demo (cut, slice, send and start the demo block)"),
     ("2", "slice an STL file"),
     ("3", "send G-code to the arms"),
     ("4", "start printing"),
@@ -604,7 +604,7 @@ def build_parser(prog="front_end"):
                                "job: slice, send, start, wait; exit 0 when every arm is done, 1 on an arm's "
                                "error or the timeout, 2 on a bad model or cell.")
     p.add_argument("--model", help="model file, mm: choice 2's default answer, and what --print prints "
-                                   "(default for --print: the demo cube)")
+                                   "(default for --print: the demo block)")
     p.add_argument("--cell", help="cell YAML (default: config/cells/kinova_ur10.yaml)")
     p.add_argument("--slicer", choices=("builtin", "prusa"), default="builtin")
     p.add_argument("--mode", choices=("concurrent", "sequential"), default="concurrent")

@@ -12,8 +12,10 @@ from typing import Dict, List
 
 from ambots.units import m_to_mm
 
-#: the model of the menu's "start demo" and of ``make demo`` (package-relative)
-DEMO_MODEL = "config/models/demo_cube.stl"
+#: the model of the menu's "start demo" and of ``make demo`` (package-relative): a
+#: 240 x 40 x 10 mm block, long enough across the seam for two facing arms to
+#: print at the same time (they must stay ~90 mm apart, see coordinate.py)
+DEMO_MODEL = "config/models/demo_block.stl"
 
 __all__ = ["DEMO_MODEL", "Job", "prepare_model", "split", "slice_parts", "coordinate", "run_job", "write_job"]
 

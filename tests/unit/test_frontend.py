@@ -138,7 +138,7 @@ def test_the_menu_has_the_original_five_choices_in_order(cell):
     s = Session(["5"], cell)
     assert s.run() == EXIT_OK
     assert [k for k, _ in CHOICES] == ["1", "2", "3", "4", "5"]
-    assert s.lines[-6:-1] == ["  1) start demo (cut, slice, send and start the demo cube)",
+    assert s.lines[-6:-1] == ["  1) start demo (cut, slice, send and start the demo block)",
                               "  2) slice an STL file", "  3) send G-code to the arms",
                               "  4) start printing", "  5) quit"]
     for key, text in CHOICES:

@@ -1,0 +1,102 @@
+"""``python -m ambots plan``: the whole job offline (no ROS master): model ->
+programs -> every arm's firmware on one simulated clock -> collisions,
+deposit mesh and ``report.json``."""
+
+
+def register(sub):
+    p = sub.add_parser("plan", help="run a whole print offline at full speed and write report.json",
+                       description="Slice and coordinate a model as `slice` does, then execute every arm's "
+                                   "program with the firmware's motion pipeline (IK, interpolation, timing, "
+                                   "barriers) on a simulated clock, check the executed motion for "
+                                   "collisions and write DIR/report.json, DIR/deposit.ply and the per-arm "
+                                   "programs.")
+    p.add_argument("model", help="model file, millimetres")
+    p.add_argument("--cell", help="cell YAML (default: config/cells/kinova_ur10.yaml)")
+    p.add_argument("--arms", help="comma-separated subset of the cell's arms, e.g. ur10")
+    p.add_argument("--slicer", choices=("builtin", "prusa"), default="builtin")
+    p.add_argument("--mode", choices=("concurrent", "sequential"), default="concurrent")
+    p.add_argument("--seam", choices=("straight", "overlap"), default="straight")
+    p.add_argument("--scale", type=float, default=1.0, help="scale factor applied to the model")
+    p.add_argument("--slow", action="append", default=[], metavar="ARM=FACTOR",
+                   help="make an arm run FACTOR times slower than planned (e.g. ur10=1.3)")
+    p.add_argument("--out", default="out/plan", help="output folder (default: out/plan)")
+    p.set_defaults(func=run)
+
+
+def plan_job(model, cell, arms=None, slicer="builtin", mode="concurrent", seam="straight", scale=1.0,
+             slow=None, out=None):
+    """Run the steps; returns the report dict (and writes files if ``out``)."""
+    import json
+    import os
+    import time
+
+    from ambots.job import run_job, write_job
+    from ambots.sim import check_motion, report, simulate
+
+    t0 = time.perf_counter()
+    job = run_job(model, cell, arms, slicer, mode, seam, scale)
+    t_job = time.perf_counter() - t0
+    result = simulate(job.programs, cell, slow=slow)
+    motion = check_motion(result, cell)
+    rep = report(result, motion, job, wall_time_s=time.perf_counter() - t0)
+    rep["slice_wall_time_s"] = round(t_job, 3)
+    rep["sim_wall_time_s"] = round(result.wall_time_s, 3)
+    if out:
+        write_job(job, out)
+        deposit = deposit_of(result)
+        if len(deposit):
+            deposit.export(os.path.join(out, "deposit.ply"),
+                           colours={n: r.arm.profile.colour for n, r in result.runners.items()}, scale=1000.0)
+        rep["deposit_mesh"] = "deposit.ply"
+        with open(os.path.join(out, "report.json"), "w") as f:
+            json.dump(rep, f, indent=2)
+    return rep
+
+
+def deposit_of(result, layer_height_m=None):
+    """The runners' beads as a :class:`~ambots.deposit.Deposit`."""
+    import numpy as np
+    from ambots.deposit import Deposit
+    from ambots.slicer import SliceSettings
+    h = layer_height_m or SliceSettings().layer_height_mm * 1e-3
+    dep = Deposit()
+    for name, r in result.runners.items():
+        beads = [b for b in r.beads if len(b.e_mm)]
+        if not beads:
+            continue
+        p0 = np.concatenate([b.p0 for b in beads])
+        p1 = np.concatenate([b.p1 for b in beads])
+        area = np.concatenate([b.area_m2 for b in beads])
+        keep = area > 0
+        dep.add(name, p0[keep], p1[keep], area[keep], h)
+    return dep
+
+
+def run(args):
+    from ambots.config import default_cell_path, load_cell
+    from ambots.errors import ConfigError
+
+    cell = load_cell(args.cell or default_cell_path())
+    arms = [cell.arm(n.strip()) for n in args.arms.split(",")] if args.arms else None
+    slow = {}
+    for item in args.slow:
+        name, _, factor = item.partition("=")
+        try:
+            slow[cell.arm(name).name] = float(factor)
+        except ValueError:
+            raise ConfigError("--slow", item, "expected ARM=FACTOR with a number, e.g. ur10=1.3") from None
+    rep = plan_job(args.model, cell, arms, args.slicer, args.mode, args.seam, args.scale, slow, args.out)
+    print("%s -> %s: %s, %s mode, makespan %.0f s (simulated), %s, wall %.1f s" % (
+        args.model, args.out, rep["cell"], rep["mode"], rep["makespan_s"],
+        "finished" if rep["finished"] else "NOT finished: " + rep["reason"], rep["wall_time_s"]))
+    print("  collisions: %s; closest approach of two arms: %s mm" % (rep["collisions"], rep["min_clearance_mm"]))
+    print("  %-8s %7s %11s %10s %9s %9s %5s %8s" % ("arm", "moves", "extrude mm", "travel mm", "print s",
+                                                 "idle s", "ik!", "dev mm"))
+    for name, a in rep["arms"].items():
+        print("  %-8s %7d %11.0f %10.0f %9.0f %9.0f %5d %8.4f" % (
+            name, a["moves"], a["extrude_mm"], a["travel_mm"], a["print_time_s"], a["idle_time_s"],
+            a["ik_failures"], a["max_path_error_mm"]))
+    for e in rep["errors"]:
+        print("  error: arm R%d line %d: %s" % (e["arm"], e["line"], e["message"]))
+    bad = sum(rep["collisions"].values()) or not rep["finished"]
+    return 1 if bad else 0

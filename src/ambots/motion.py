@@ -1,0 +1,409 @@
+"""From an arm's program to joint motion: the firmware's planner.
+
+A program (G-code plus ``;@`` directive lines, see :mod:`ambots.program`)
+is read into a list of *items*, in line order:
+
+* :class:`Moves` -- a run of consecutive G-code segments (bed frame, mm);
+* :class:`Directive` -- an A-series command to execute at that line;
+* :class:`Pause` -- a ``G4`` dwell.
+
+:class:`MotionPlanner` turns one :class:`Moves` item into a :class:`Block`
+of time-stamped joint waypoints, steps a real controller could follow:
+
+1. every straight G-code move is sampled (``sample_mm`` apart), converted
+   once to metres in the arm's base frame and solved by
+   :meth:`~ambots.kinematics.ArmKinematics.ik_path` (each point seeded by
+   the previous, nozzle pointing down, joint continuity checked);
+2. between two waypoints a controller interpolates the *joints* linearly;
+   the nozzle then leaves the straight line a little.  That deviation is
+   measured by forward kinematics at the middle of every interval and the
+   interval is halved until it is at most ``tolerance_mm`` (0.1 mm);
+3. each interval gets the duration of its programmed feedrate, stretched
+   where a joint would exceed its speed limit (``velocity`` x the profile's
+   ``velocity_scaling``);
+4. a move that does not start where the nozzle is (the first move of a
+   program, or after a park) is a joint-space move to the end of that move,
+   checked against obstacles and planned around them with OMPL when a
+   straight joint move is blocked (:mod:`ambots.planning`); travel moves
+   that a caller-supplied obstacle check refuses are re-planned the same way.
+
+Units: metres, radians and seconds inside; mm only where G-code is read
+(:mod:`ambots.units`).  World frame = the cell's; bed frame = G-code frame.
+"""
+from dataclasses import dataclass, field
+from typing import List, Optional
+
+import numpy as np
+
+from ambots.errors import AmbotsError, UnreachableError
+from ambots.gcode import Dwell, Segment, parse_gcode_text
+from ambots.program import is_directive, parse_directive
+from ambots.units import MM
+from ambots.workspace import down_in_base
+
+__all__ = ["Moves", "Directive", "Pause", "read_program", "Block", "MotionPlanner",
+           "MotionError", "DEFAULT_TOLERANCE_MM", "FILAMENT_AREA_MM2"]
+
+#: largest distance (mm) between the nozzle and the programmed straight line
+DEFAULT_TOLERANCE_MM = 0.1
+#: cross-section of 1.75 mm filament, mm^2
+FILAMENT_AREA_MM2 = np.pi * (1.75 / 2) ** 2
+
+
+class MotionError(AmbotsError):
+    """The arm cannot execute a line of its program.  Attributes: ``line``
+    (1-based line of the program), ``message``."""
+
+    def __init__(self, line, message):
+        self.line, self.message = line, message
+        super().__init__("line %d: %s" % (line, message))
+
+
+# ------------------------------------------------------------- the program
+@dataclass
+class Moves:
+    segments: List[Segment]
+
+    @property
+    def line(self):
+        return self.segments[0].line
+
+
+@dataclass
+class Directive:
+    line: int
+    message: object          #: a protocol dataclass (WaitFor, MoveTo, Start...)
+
+
+@dataclass
+class Pause:
+    line: int
+    seconds: float
+
+
+def read_program(text, path="<chunk>", max_run=400):
+    """Program text -> (items, n_lines, layer_of_line).
+
+    ``items`` in line order; moves are split at every directive, dwell and
+    layer change, and into runs of at most ``max_run`` segments (so that a
+    firmware plans a little ahead of the nozzle, never the whole print
+    before it moves).
+    ``layer_of_line`` (n_lines + 1,) gives the layer of each line (index 0
+    unused).  Malformed G-code or directives raise
+    :class:`~ambots.errors.GCodeError` naming ``path`` and the line."""
+    lines = text.split("\n")
+    directives = {}
+    for number, raw in enumerate(lines, 1):
+        if is_directive(raw):
+            directives[number] = parse_directive(raw, path, number)
+    items, run = [], []
+    marks = sorted(directives)
+    layer_of_line = np.zeros(len(lines) + 1, dtype=int)
+    mi = 0
+
+    def flush():
+        if run:
+            items.append(Moves(list(run)))
+            run.clear()
+
+    def directives_before(line):
+        nonlocal mi
+        while mi < len(marks) and marks[mi] < line:
+            flush()
+            items.append(Directive(marks[mi], directives[marks[mi]]))
+            mi += 1
+
+    last_line, last_layer = 0, 0
+    for ev in parse_gcode_text(text, path):
+        kind = type(ev)
+        if kind is Segment or kind is Dwell:
+            directives_before(ev.line)
+            layer_of_line[last_line + 1:ev.line + 1] = last_layer
+            last_line, last_layer = ev.line, max(ev.layer, 0)
+            if kind is Segment:
+                if run and (ev.layer != run[-1].layer or len(run) >= max_run):
+                    flush()
+                run.append(ev)
+            else:
+                flush()
+                items.append(Pause(ev.line, ev.seconds))
+    directives_before(len(lines) + 1)
+    flush()
+    layer_of_line[last_line + 1:] = last_layer
+    return items, len(lines), layer_of_line
+
+
+# ------------------------------------------------------------- the motion
+@dataclass
+class Block:
+    """Planned motion of one item: K time-stamped waypoints.
+
+    ``t`` (K,) s from the block's start (t[0] = 0); ``Q`` (K, n) rad;
+    ``tip`` (K, 3) nozzle positions in the world frame (m), by forward
+    kinematics of ``Q``.  Interval k is waypoint k-1 -> k (k >= 1); per
+    interval (index k, entry 0 unused): ``line`` the program line it executes,
+    ``layer``, ``extrude`` whether it deposits, ``e_mm`` filament pushed.
+    ``line_end`` (K,): waypoint k completes line ``line[k]``.
+    ``max_deviation_mm``: largest measured distance between the nozzle and
+    the programmed line over extrusion intervals.
+    """
+    t: np.ndarray
+    Q: np.ndarray
+    tip: np.ndarray
+    line: np.ndarray
+    layer: np.ndarray
+    extrude: np.ndarray
+    e_mm: np.ndarray
+    line_end: np.ndarray = None
+    max_deviation_mm: float = 0.0
+    travel_m: float = 0.0
+    extrude_m: float = 0.0
+    error: Optional[MotionError] = None      #: set if the arm cannot go past the block's end
+    planned: str = "cartesian"               #: or "joint" / "ompl" for joint-space moves
+
+    def __post_init__(self):
+        if self.line_end is None:
+            le = np.zeros(len(self.t), dtype=bool)
+            if len(self.t) > 1:
+                le[1:-1] = self.line[1:-1] != self.line[2:]
+                le[-1] = True
+            self.line_end = le
+
+    @property
+    def duration(self):
+        return float(self.t[-1]) if len(self.t) else 0.0
+
+
+def _concat(blocks):
+    """Join blocks that follow each other (each starts where the previous ends)."""
+    blocks = [b for b in blocks if b is not None and len(b.t)]
+    if len(blocks) == 1:
+        return blocks[0]
+    t, parts = [], []
+    offset = 0.0
+    for i, b in enumerate(blocks):
+        s = slice(0 if i == 0 else 1, None)
+        t.append(b.t[s] + offset)
+        offset += b.duration
+        parts.append(b)
+    cat = lambda name: np.concatenate([getattr(b, name)[0 if i == 0 else 1:] for i, b in enumerate(parts)])
+    return Block(np.concatenate(t), cat("Q"), cat("tip"), cat("line"), cat("layer"), cat("extrude"),
+                 cat("e_mm"), cat("line_end"), max(b.max_deviation_mm for b in parts),
+                 sum(b.travel_m for b in parts), sum(b.extrude_m for b in parts),
+                 next((b.error for b in parts if b.error is not None), None),
+                 "+".join(sorted({b.planned for b in parts})))
+
+
+def _point_line_distance(X, A, B):
+    """Distance of points X from segments A-B, all (N, 3) -> (N,)."""
+    d = B - A
+    L2 = np.einsum("ij,ij->i", d, d)
+    u = np.where(L2 > 0, np.einsum("ij,ij->i", X - A, d) / np.where(L2 > 0, L2, 1.0), 0.0)
+    u = np.clip(u, 0.0, 1.0)
+    return np.linalg.norm(X - (A + u[:, None] * d), axis=1)
+
+
+class MotionPlanner:
+    """Plans one arm's motion.
+
+    Parameters
+    ----------
+    arm : :class:`~ambots.config.ArmInstance`
+    cell : :class:`~ambots.config.Cell` (its bed pose maps G-code to world)
+    kin : :class:`~ambots.kinematics.ArmKinematics` (default: built from the arm)
+    tolerance_mm : largest nozzle deviation from a programmed straight line
+    sample_mm : first sampling step along a move (refined where needed)
+    is_valid : optional ``f(Q (N, n)) -> bool (N,)`` saying which joint
+        vectors are free of collisions right now (bed, part, other arms);
+        travel and joint moves are checked with it and re-planned by OMPL
+    """
+
+    def __init__(self, arm, cell, kin=None, tolerance_mm=DEFAULT_TOLERANCE_MM, sample_mm=10.0,
+                 is_valid=None, plan_timeout=2.0):
+        from ambots.model import arm_kinematics
+        self.arm, self.cell = arm, cell
+        self.kin = kin or arm_kinematics(arm)
+        self.tolerance = tolerance_mm * MM
+        self.sample = sample_mm * MM
+        self.is_valid = is_valid
+        self.plan_timeout = plan_timeout
+        #: > 1 stretches every planned duration (an arm slower than planned)
+        self.time_scale = 1.0
+        prof = arm.profile
+        self.vmax = np.array([j.velocity for j in prof.joints]) * prof.velocity_scaling
+        self.amax = np.array([j.acceleration for j in prof.joints]) * prof.velocity_scaling
+        self.down = down_in_base(arm)
+        T_bed = cell.bed.pose
+        # bed mm -> base m in one affine map
+        Tb = np.linalg.inv(arm.base_pose) @ T_bed
+        self._bed_R, self._bed_t = Tb[:3, :3] * MM, Tb[:3, 3]
+        self._world = arm.base_pose
+
+    # -------------------------------------------------------- frames
+    def bed_mm_to_base(self, P):
+        """(N, 3) bed-frame mm -> (N, 3) base-frame m."""
+        return np.asarray(P, dtype=float) @ self._bed_R.T + self._bed_t
+
+    def base_to_world(self, P):
+        T = self._world
+        return P @ T[:3, :3].T + T[:3, 3]
+
+    def tip_world(self, Q):
+        """Nozzle positions (N, 3) in the world frame for joint vectors (N, n)."""
+        return self.base_to_world(self.kin.fk_batch(Q)[:, :3, 3])
+
+    def world_to_bed_mm(self, P):
+        T = np.linalg.inv(self.cell.bed.pose)
+        return (np.asarray(P, dtype=float) @ T[:3, :3].T + T[:3, 3]) / MM
+
+    # -------------------------------------------------------- segments
+    def plan_moves(self, segments, q0):
+        """A run of G-code segments starting at joint vector ``q0`` -> Block.
+
+        If the first segment does not start where the nozzle is, the nozzle
+        first makes a joint-space move there.  An unreachable point ends the
+        block at the last reachable waypoint with ``error`` set."""
+        q0 = np.asarray(q0, dtype=float)
+        here = self.kin.fk_batch(q0[None])[0, :3, 3]
+        first = segments[0]
+        start = self.bed_mm_to_base(np.array([first.start]))[0]
+        lead = None
+        if np.linalg.norm(start - here) > 0.5 * MM:
+            # a travel to somewhere else: joint move straight to the end of
+            # the first travel (no point following a fictitious start)
+            if not first.extrude:
+                target = self.bed_mm_to_base(np.array([first.end]))[0]
+                lead = self.joint_move_to(target, q0, line=first.line, layer=max(first.layer, 0))
+                segments = segments[1:]
+            else:
+                lead = self.joint_move_to(start, q0, line=first.line, layer=max(first.layer, 0))
+            if lead.error is not None or not segments:
+                return lead
+            q0 = lead.Q[-1]
+        body = self._cartesian(segments, q0)
+        return _concat([lead, body]) if lead is not None else body
+
+    def _cartesian(self, segments, q0):
+        n = len(segments)
+        S = np.array([s.start for s in segments], dtype=float)
+        E = np.array([s.end for s in segments], dtype=float)
+        Lmm = np.linalg.norm(E - S, axis=1)
+        pieces = np.maximum(1, np.ceil(Lmm * MM / self.sample)).astype(int)
+        pieces[Lmm == 0] = 1
+        # sample points: the start, then each segment's interior points and end
+        seg_of = np.repeat(np.arange(n), pieces)                      # per interval
+        frac = (np.arange(len(seg_of)) - np.repeat(np.cumsum(pieces) - pieces, pieces) + 1) / np.repeat(pieces, pieces)
+        P_mm = np.concatenate([S[:1], S[seg_of] + (E[seg_of] - S[seg_of]) * frac[:, None]])
+        seg_of = np.concatenate([[seg_of[0]], seg_of])                 # waypoint k ends interval of segment seg_of[k]
+        P = self.bed_mm_to_base(P_mm)
+        Q, ok = self.kin.ik_path(P, q0, self.down, max_joint_step=0.35)
+        error = None
+        if not ok.all():
+            bad = int(np.argmin(ok))
+            seg = segments[seg_of[bad]]
+            error = MotionError(seg.line, "unreachable: no joint configuration within limits puts the "
+                                "nozzle at (%.2f, %.2f, %.2f) mm (bed frame) pointing down without a joint "
+                                "jump" % tuple(P_mm[bad]))
+            # stop after the last segment completed before the failing one
+            keep = max(1, int(np.sum(seg_of[1:] < seg_of[bad])) + 1)
+            P, Q, seg_of, P_mm = P[:keep], Q[:keep], seg_of[:keep], P_mm[:keep]
+        # refine until joint interpolation stays within tolerance of the line
+        for _ in range(8):
+            if len(P) < 2:
+                break
+            Qm = 0.5 * (Q[:-1] + Q[1:])
+            Xm = self.kin.fk_batch(Qm)[:, :3, 3]
+            dev = _point_line_distance(Xm, P[:-1], P[1:])
+            moving = np.linalg.norm(P[1:] - P[:-1], axis=1) > 1e-9
+            bad = np.where((dev > self.tolerance) & moving)[0]
+            if not len(bad):
+                break
+            Pm = 0.5 * (P[bad] + P[bad + 1])
+            Qn, okn, _ = self.kin.ik_batch(Pm, Qm[bad], self.down)
+            Qn[~okn] = Qm[bad][~okn]
+            ins = bad + 1
+            P = np.insert(P, ins, Pm, axis=0)
+            Q = np.insert(Q, ins, Qn, axis=0)
+            P_mm = np.insert(P_mm, ins, 0.5 * (P_mm[bad] + P_mm[bad + 1]), axis=0)
+            seg_of = np.insert(seg_of, ins, seg_of[bad + 1])
+        # measured deviation (after refinement) over extruding intervals
+        K = len(P)
+        seg_of_iv = seg_of.copy()
+        extr = np.array([s.extrude for s in segments])[seg_of_iv]
+        extr[0] = False
+        extr[1:] &= np.linalg.norm(np.diff(P, axis=0), axis=1) > 0    # an unretraction lays no bead
+        dev_max = 0.0
+        if K >= 2:
+            Qm = 0.5 * (Q[:-1] + Q[1:])
+            Xm = self.kin.fk_batch(Qm)[:, :3, 3]
+            dev = _point_line_distance(Xm, P[:-1], P[1:])
+            if extr[1:].any():
+                dev_max = float(dev[extr[1:]].max()) / MM
+        # per-interval figures
+        seg_L = np.maximum(Lmm, 1e-12)
+        L_iv = np.zeros(K)
+        L_iv[1:] = np.linalg.norm(np.diff(P_mm, axis=0), axis=1)
+        e_seg = np.array([s.e for s in segments])
+        e_iv = np.where(Lmm[seg_of_iv] > 0, e_seg[seg_of_iv] * L_iv / seg_L[seg_of_iv], e_seg[seg_of_iv])
+        e_iv[0] = 0.0
+        feed = np.array([s.feedrate for s in segments])[seg_of_iv]
+        feed = np.where(feed > 0, feed, 1800.0) / 60.0                   # mm/s
+        dt = np.zeros(K)
+        dt[1:] = np.where(L_iv[1:] > 0, L_iv[1:] / feed[1:], np.abs(e_iv[1:]) / feed[1:])
+        if K >= 2:
+            dq = np.abs(np.diff(Q, axis=0))
+            dt[1:] = np.maximum(dt[1:], np.max(dq / self.vmax, axis=1))
+        t = np.cumsum(dt) * self.time_scale
+        lines = np.array([s.line for s in segments])[seg_of_iv]
+        layers = np.maximum(np.array([s.layer for s in segments]), 0)[seg_of_iv]
+        travel = float(L_iv[~extr].sum()) * MM
+        extrude = float(L_iv[extr].sum()) * MM
+        return Block(t, Q, self.base_to_world(self.kin.fk_batch(Q)[:, :3, 3]), lines, layers, extr, e_iv,
+                     max_deviation_mm=dev_max, travel_m=travel, extrude_m=extrude, error=error)
+
+    # -------------------------------------------------------- joint moves
+    def joint_move_to(self, target_base, q0, line=0, layer=0):
+        """Joint-space move of the nozzle to ``target_base`` (3,) base-frame m,
+        pointing down: straight in joint space when clear, else OMPL."""
+        q0 = np.asarray(q0, dtype=float)
+        try:
+            q1 = self.kin.ik(target_base, q0, self.down)
+        except UnreachableError as exc:
+            q1 = None
+            home = np.asarray(self.arm.profile.home, dtype=float)
+            try:
+                q1 = self.kin.ik(target_base, home, self.down)
+            except UnreachableError:
+                pass
+            if q1 is None:
+                return self._still(q0, line, layer, MotionError(line, "unreachable: %s" % exc))
+        return self.joint_path(q0, q1, line, layer)
+
+    def joint_path(self, q0, q1, line=0, layer=0):
+        """Timed joint-space path q0 -> q1 (straight if clear, else OMPL)."""
+        from ambots.planning import JointPlanner, PlanningError, interpolate, time_parametrize
+        path, how = np.array([q0, q1]), "joint"
+        if self.is_valid is not None:
+            planner = JointPlanner(self.kin.lower, self.kin.upper, self.is_valid, resolution=0.02)
+            try:
+                path = planner.plan(q0, q1, timeout=self.plan_timeout)
+            except PlanningError as exc:
+                return self._still(q0, line, layer, MotionError(line, "no collision-free path: %s" % exc))
+            how = "joint" if len(path) == 2 else "ompl"
+        path = interpolate(path, 0.05)
+        t = np.asarray(time_parametrize(path, self.vmax, self.amax), dtype=float) * self.time_scale
+        K = len(path)
+        tip = self.tip_world(path)
+        L = float(np.linalg.norm(np.diff(tip, axis=0), axis=1).sum())
+        return Block(np.asarray(t, dtype=float), path, tip, np.full(K, line), np.full(K, layer),
+                     np.zeros(K, dtype=bool), np.zeros(K), travel_m=L, planned=how)
+
+    def _still(self, q, line, layer, error=None):
+        return Block(np.zeros(1), np.asarray(q, dtype=float)[None], self.tip_world(np.asarray(q)[None]),
+                     np.array([line]), np.array([layer]), np.zeros(1, dtype=bool), np.zeros(1), error=error)
+
+    def dwell(self, q, seconds, line=0, layer=0):
+        """Stand still for ``seconds``."""
+        q = np.asarray(q, dtype=float)
+        return Block(np.array([0.0, float(seconds)]), np.stack([q, q]), self.tip_world(np.stack([q, q])),
+                     np.array([line, line]), np.array([layer, layer]), np.zeros(2, dtype=bool), np.zeros(2))

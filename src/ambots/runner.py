@@ -1,0 +1,433 @@
+"""One arm's firmware, without ROS: A-series commands in, motion and
+deposit out, on a clock the caller drives.
+
+:class:`ArmRunner` is the state machine of ``nodes/firmware`` and of the
+offline simulator (``python -m ambots plan``), so both execute programs the
+same way.  The caller
+
+* hands it every message addressed to the arm, and the status reports
+  (A10) and error reports (A11) of the other arms: :meth:`handle`;
+* advances its clock: :meth:`advance` (simulated seconds; the caller
+  chooses how they relate to wall time);
+* drains what it produced: :attr:`outbox` ((simulated time, protocol
+  message) pairs for the hub, without S/Q -- the caller's
+  :class:`~ambots.reliable.Sender` numbers them), :attr:`beads` (deposited
+  beads), and reads :meth:`joints`.
+
+Waiting costs no computation: a waiting arm resumes at the simulated time
+the awaited report was made (or its own clock, if later), so the offline
+simulator's step size does not inflate idle time.
+
+States (:class:`~ambots.protocol.ArmState`): IDLE (no chunk or not
+started), PRINTING, PAUSED, WAITING (at an A9 barrier), DONE, ERROR.
+
+Directives of the program (``;@...`` lines) are executed when reached:
+``A9`` waits for another arm's line/layer (its A10 reports); ``A3``
+reports this arm's line and position (A10) to the others; ``A7``/``A1``
+addressed to this arm move/continue it, addressed to another arm they are
+sent through the hub.  Before the first A9 of a barrier the arm reports
+A10 with the last completed line, which is what the other arms' A9
+barriers wait for.
+
+Pause (A2) stops at the end of the G-code line being executed (a clean
+point: never in the middle of a bead) and A6 resumes from there, so a
+paused print deposits exactly what an uninterrupted one does.
+"""
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from ambots.errors import GCodeError
+from ambots.motion import Directive, Moves, MotionPlanner, Pause as Dwell, read_program, FILAMENT_AREA_MM2
+from ambots.protocol import (Ack, ArmState, ClearChunk, ErrorReport, LoadChunk, MoveTo, Pause, Resume,
+                             SendPosition, Start, Status, WaitFor, MAX_TEXT)
+from ambots.units import MM
+
+__all__ = ["ArmRunner", "Bead", "RunStats"]
+
+
+@dataclass
+class Bead:
+    """Deposited beads of one step, world frame: ``p0``, ``p1`` (K, 3) m,
+    ``e_mm`` (K,) filament, ``line``/``layer`` (K,), ``t`` (K,) sim time at
+    the end of each bead."""
+    p0: np.ndarray
+    p1: np.ndarray
+    e_mm: np.ndarray
+    line: np.ndarray
+    layer: np.ndarray
+    t: np.ndarray
+
+    @property
+    def area_m2(self):
+        """Cross-section of each bead (K,) m^2 from the filament pushed."""
+        L = np.linalg.norm(self.p1 - self.p0, axis=1)
+        return np.where(L > 0, self.e_mm * FILAMENT_AREA_MM2 * MM ** 3 / np.maximum(L, 1e-12), 0.0)
+
+
+@dataclass
+class RunStats:
+    moves: int = 0                 #: G-code moves executed
+    extrude_m: float = 0.0
+    travel_m: float = 0.0
+    print_time_s: float = 0.0      #: simulated time in motion
+    idle_time_s: float = 0.0       #: simulated time waiting or paused while a job runs
+    ik_failures: int = 0
+    max_path_error_mm: float = 0.0
+    plans: Dict[str, int] = field(default_factory=dict)   #: blocks by planning kind
+    first_motion_s: Optional[float] = None
+    done_s: Optional[float] = None
+
+
+class ArmRunner:
+    """Firmware state machine of one arm (see the module docstring).
+
+    Parameters
+    ----------
+    arm, cell : the arm (:class:`~ambots.config.ArmInstance`) and its cell
+    planner : a :class:`~ambots.motion.MotionPlanner` (default: built here)
+    q0 : initial joint vector (default: the profile's home)
+    now : initial simulated time (s)
+    record : keep every executed waypoint (``trace``) for offline analysis
+    """
+
+    def __init__(self, arm, cell, planner=None, q0=None, now=0.0, record=False):
+        self.arm, self.cell = arm, cell
+        self.id = arm.id
+        self.planner = planner or MotionPlanner(arm, cell)
+        self.q = np.array(arm.profile.home if q0 is None else q0, dtype=float)
+        self.clock = float(now)
+        self.state = ArmState.IDLE
+        self.outbox: List[object] = []
+        self.beads: List[Bead] = []
+        self.stats = RunStats()
+        self.peers: Dict[int, Status] = {}
+        self.peer_time: Dict[int, float] = {}
+        self.record = record
+        self.trace_t: List[np.ndarray] = []
+        self.trace_q: List[np.ndarray] = []
+        self._clear()
+
+    # ----------------------------------------------------------- program
+    def _clear(self):
+        self.chunk = None            #: identity of the loaded chunk
+        self.items = []
+        self.n_lines = 0
+        self.layer_of_line = np.zeros(1, dtype=int)
+        self.idx = 0                 #: next item
+        self.block = None
+        self.block_t0 = 0.0
+        self.k = 0                   #: last waypoint reached in the block
+        self.done_line = 0           #: last completed program line
+        self.layer = 0
+        self.wait = None             #: the WaitFor being waited on
+        self.pause_requested = False
+        self.after_block = None      #: state after a manual (A7) move
+        self.reported_line = -1
+
+    @property
+    def percent(self):
+        return 100.0 * min(1.0, self.done_line / self.n_lines) if self.n_lines else 0.0
+
+    def joints(self, now=None):
+        """Joint vector (n,) at ``now`` (default: the runner's clock),
+        interpolated between waypoints while moving."""
+        b = self.block
+        if b is None or now is None or self.state not in (ArmState.PRINTING,) or self.k + 1 >= len(b.t):
+            return self.q.copy()
+        t = min(max(now - self.block_t0, b.t[self.k]), b.t[self.k + 1])
+        span = b.t[self.k + 1] - b.t[self.k]
+        u = 0.0 if span <= 0 else (t - b.t[self.k]) / span
+        return b.Q[self.k] + u * (b.Q[self.k + 1] - b.Q[self.k])
+
+    def nozzle_mm(self):
+        """Nozzle position (3,) in the bed frame, mm."""
+        return self.planner.world_to_bed_mm(self.planner.tip_world(self.q[None]))[0]
+
+    def status(self, with_position=False):
+        """The arm's A10 report now."""
+        x = y = z = None
+        if with_position:
+            x, y, z = (round(float(v), 3) for v in self.nozzle_mm())
+        return Status(self.id, self.state, int(self.layer), int(self.done_line),
+                      round(float(self.percent), 2), x, y, z)
+
+    def _report(self, with_position=False):
+        self.outbox.append((self.clock, self.status(with_position)))
+        self.reported_line = self.done_line
+
+    def _error(self, line, text):
+        self.outbox.append((self.clock, ErrorReport(self.id, int(line), str(text)[:MAX_TEXT])))
+
+    # ----------------------------------------------------------- commands
+    def handle(self, msg, now=None):
+        """Execute one message (its S/Q already handled by the caller's
+        :class:`~ambots.reliable.Receiver`).  Messages about other arms
+        (A10/A11 with R != this arm) update what this arm knows of them."""
+        now = self.clock if now is None else now
+        if isinstance(msg, Status):
+            if msg.robot != self.id:
+                self.peers[msg.robot] = msg
+                self.peer_time[msg.robot] = now
+            return
+        if isinstance(msg, ErrorReport):
+            if msg.robot != self.id:
+                self.peers.setdefault(msg.robot, None)
+            return
+        if isinstance(msg, Ack):
+            return
+        if getattr(msg, "robot", None) != self.id:
+            if isinstance(msg, SendPosition):       # A3 R<to>: a report with our position, for arm <to>
+                self._report(with_position=True)
+                return
+            self._error(0, "A%d for R%d delivered to arm R%d: ignored" % (msg.CODE, msg.robot, self.id))
+            return
+        kind = type(msg)
+        if kind is LoadChunk:
+            self._load(msg)
+        elif kind is ClearChunk:
+            was = self.state
+            self._clear()
+            self.state = ArmState.IDLE
+            if was in (ArmState.PRINTING, ArmState.WAITING, ArmState.PAUSED):
+                self._error(0, "chunk cleared while %s: stopped" % was.name)
+            self._report()
+        elif kind is Start:
+            if not self.items:
+                self._error(0, "A1: no chunk loaded")
+            elif self.state in (ArmState.IDLE, ArmState.DONE):
+                if self.state is ArmState.DONE:        # run the same chunk again from the top
+                    self.idx, self.done_line, self.block = 0, 0, None
+                self.state = ArmState.PRINTING
+                self.clock = now
+                self._report()
+            elif self.state is ArmState.PAUSED:
+                self._resume(now)
+        elif kind is Pause:
+            if self.state is ArmState.PRINTING:
+                self.pause_requested = True
+            elif self.state is ArmState.WAITING:
+                self.state = ArmState.PAUSED
+                self._report()
+        elif kind is Resume:
+            if self.state is ArmState.PAUSED:
+                self._resume(now)
+        elif kind is SendPosition:
+            self._report(with_position=True)
+        elif kind is MoveTo:
+            self._manual_move(msg, now)
+        elif kind is WaitFor:
+            if self.state in (ArmState.PRINTING, ArmState.IDLE):
+                self.wait = msg
+                self._resume_state = self.state
+                self.state = ArmState.WAITING
+                self._report()
+
+    def _resume(self, now):
+        self.pause_requested = False
+        self.state = ArmState.WAITING if self.wait is not None else ArmState.PRINTING
+        if self.block is not None:       # continue the block where it stopped
+            self.block_t0 = now - self.block.t[self.k]
+        self.clock = now
+        self._report()
+
+    def _load(self, msg):
+        if self.state in (ArmState.PRINTING, ArmState.WAITING, ArmState.PAUSED):
+            self._error(0, "A5 refused: arm is %s; clear (A4) or let it finish first" % self.state.name)
+            return
+        if msg.identity == self.chunk:
+            return                       # the same chunk again
+        try:
+            items, n_lines, layer_of_line = read_program(msg.gcode, "chunk %s" % msg.chunk_id)
+        except GCodeError as exc:
+            self._error(exc.line or 0, "A5 refused: %s" % exc)
+            return
+        self._clear()
+        self.chunk = msg.identity
+        self.items, self.n_lines, self.layer_of_line = items, n_lines, layer_of_line
+        self.state = ArmState.IDLE
+        self._report()
+
+    def _manual_move(self, msg, now):
+        if self.state in (ArmState.PRINTING, ArmState.WAITING) or self.block is not None:
+            self._error(0, "A7 refused while %s%s" % (self.state.name, " in the middle of a move"
+                                                       if self.block is not None else ""))
+            return
+        target = self.planner.bed_mm_to_base(np.array([[msg.x, msg.y, msg.z]]))[0]
+        block = self.planner.joint_move_to(target, self.q, line=self.done_line, layer=self.layer)
+        if block.error is not None:
+            self.stats.ik_failures += 1
+            self._error(0, "A7 X%g Y%g Z%g: %s" % (msg.x, msg.y, msg.z, block.error.message))
+            return
+        self.after_block = self.state
+        self.block, self.block_t0, self.k = block, now, 0
+        self.state = ArmState.PRINTING
+
+    # ----------------------------------------------------------- time
+    def _wait_satisfied(self):
+        w = self.wait
+        st = self.peers.get(w.other)
+        if st is None:
+            return False
+        if st.state is ArmState.DONE:
+            return True
+        if w.line is not None:
+            return st.line >= w.line
+        return st.layer >= w.layer
+
+    def advance(self, now):
+        """Run until simulated time ``now`` (s) or until the arm stops
+        (waits, pauses, finishes or fails)."""
+        while True:
+            if self.state is ArmState.WAITING:
+                if self.wait is not None and self._wait_satisfied():
+                    wake = max(self.clock, min(now, self.peer_time.get(self.wait.other, self.clock)))
+                    self._idle_until(wake)
+                    self.wait = None
+                    self.state = ArmState.PRINTING
+                    continue
+                return                   # the clock stays where the wait began
+            if self.state is ArmState.PAUSED:
+                self._idle_until(now)
+                return
+            if self.state is not ArmState.PRINTING:
+                self.clock = max(self.clock, now)
+                return
+            if self.block is None and not self._next_block():
+                continue
+            if not self._run_block(now):
+                return
+
+    def _idle_until(self, now):
+        if now > self.clock:
+            if self.stats.first_motion_s is not None:
+                self.stats.idle_time_s += now - self.clock
+            self.clock = now
+
+    def _next_block(self):
+        """Take the next item.  Returns True if a block is ready to run."""
+        if self.idx >= len(self.items):
+            self.done_line = self.n_lines
+            self.state = ArmState.DONE
+            self.stats.done_s = self.clock
+            self._report(with_position=True)
+            return False
+        item = self.items[self.idx]
+        prev = self.items[self.idx - 1] if self.idx else None
+        self.idx += 1
+        if isinstance(item, Directive):
+            self.done_line = max(self.done_line, item.line - 1)
+            if isinstance(item.message, WaitFor) and not isinstance(prev, Directive) \
+                    and self.reported_line != self.done_line:
+                self._report()        # what the other arms' barriers wait for
+            self._directive(item)
+            return False
+        if isinstance(item, Dwell):
+            self.block = self.planner.dwell(self.q, item.seconds, item.line, self.layer_of_line[item.line])
+        else:
+            self.block = self.planner.plan_moves(item.segments, self.q)
+            self.stats.moves += len(item.segments)
+        b = self.block
+        self.stats.plans[b.planned] = self.stats.plans.get(b.planned, 0) + 1
+        self.stats.max_path_error_mm = max(self.stats.max_path_error_mm, b.max_deviation_mm)
+        self.block_t0, self.k = self.clock, 0
+        if self.stats.first_motion_s is None:
+            self.stats.first_motion_s = self.clock
+        return True
+
+    def _directive(self, item):
+        msg = item.message
+        target = getattr(msg, "robot", None)
+        if isinstance(msg, WaitFor) and target == self.id:
+            self.done_line = item.line
+            self.wait = msg
+            if not self._wait_satisfied():
+                self.state = ArmState.WAITING
+            else:
+                self.wait = None
+            return
+        if isinstance(msg, SendPosition):      # ;@A3 R<to>: report (A10 with position) now
+            self.done_line = item.line
+            self._report(with_position=True)
+            return
+        if target == self.id and isinstance(msg, MoveTo):
+            target_base = self.planner.bed_mm_to_base(np.array([[msg.x, msg.y, msg.z]]))[0]
+            self.block = self.planner.joint_move_to(target_base, self.q, line=item.line,
+                                                    layer=self.layer_of_line[item.line])
+            self.block_t0, self.k = self.clock, 0
+            self.stats.plans[self.block.planned] = self.stats.plans.get(self.block.planned, 0) + 1
+            return
+        if target == self.id:
+            self.done_line = item.line
+            return
+        # addressed to another arm: send it through the hub
+        self.outbox.append((self.clock, msg))
+        self.done_line = item.line
+
+    def _run_block(self, now):
+        """Advance in the current block.  Returns False when time is used up
+        (or the arm stopped), True when the block finished."""
+        b = self.block
+        K = len(b.t)
+        t_rel = now - self.block_t0
+        kk = int(np.searchsorted(b.t, t_rel, side="right")) - 1
+        kk = min(max(kk, self.k), K - 1)
+        stop = None
+        if self.pause_requested:
+            ends = np.nonzero(b.line_end[self.k + 1:])[0]
+            j = self.k + 1 + int(ends[0]) if len(ends) else K - 1
+            if j <= kk:
+                kk, stop = j, True
+        if kk > self.k:
+            self._execute(b, self.k, kk)
+            self.k = kk
+        if stop:
+            self.pause_requested = False
+            self.clock = self.block_t0 + b.t[self.k]
+            if self.k == K - 1:
+                self._end_block()
+            self.state = ArmState.PAUSED
+            self._report()
+            return False
+        if self.k == K - 1:
+            self.clock = self.block_t0 + b.duration
+            self._end_block()
+            return self.state is ArmState.PRINTING
+        self.clock = now
+        return False
+
+    def _execute(self, b, k0, k1):
+        """Waypoints k0 -> k1 of block ``b`` are reached."""
+        sl = slice(k0 + 1, k1 + 1)
+        self.q = b.Q[k1].copy()
+        self.stats.print_time_s += float(b.t[k1] - b.t[k0])
+        done = np.nonzero(b.line_end[sl])[0]
+        if len(done):
+            self.done_line = max(self.done_line, int(b.line[sl][done[-1]]))
+        lay = int(b.layer[k1])
+        if lay != self.layer:
+            self.layer = lay
+        ex = b.extrude[sl]
+        if ex.any():
+            idx = np.arange(k0 + 1, k1 + 1)[ex]
+            self.beads.append(Bead(b.tip[idx - 1], b.tip[idx], b.e_mm[idx], b.line[idx], b.layer[idx],
+                                   self.block_t0 + b.t[idx]))
+        if self.record:
+            self.trace_t.append(self.block_t0 + b.t[sl])
+            self.trace_q.append(b.Q[sl])
+
+    def _end_block(self):
+        b = self.block
+        self.stats.extrude_m += b.extrude_m
+        self.stats.travel_m += b.travel_m
+        self.block = None
+        if b.error is not None:
+            self.stats.ik_failures += 1
+            self.state = ArmState.ERROR
+            self._error(b.error.line, b.error.message)
+            self._report(with_position=True)
+            return
+        if self.after_block is not None:        # a manual A7 move
+            self.state, self.after_block = self.after_block, None
+            self._report(with_position=True)

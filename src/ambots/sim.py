@@ -1,0 +1,236 @@
+"""Offline run of a whole cell: every arm's firmware (:class:`~ambots.runner.ArmRunner`)
+on one simulated clock, messages passed directly instead of through ROS,
+then the executed motion checked for collisions and summarised in the
+report (``report.json``) that the live system writes too.
+
+Steps (``python -m ambots plan`` runs them in this order):
+
+1. :func:`simulate` -- load each arm's program (A5), start the arms the
+   job says (A1) and advance all runners until every arm is done or one
+   fails; A10/A11 of each arm reach the others, A1/A7 reach their target;
+2. :func:`check_motion` -- resample every arm's executed joint trajectory
+   on one time grid and measure arm-arm, arm-bed and arm-part clearance
+   with the capsule model (:mod:`ambots.collision`);
+3. :func:`report` -- the report dictionary (see the README for its keys).
+"""
+import time
+from dataclasses import dataclass, field
+from typing import Dict, List
+
+import numpy as np
+
+from ambots.protocol import ArmState, ErrorReport, LoadChunk, MoveTo, Start, Status
+from ambots.runner import ArmRunner
+from ambots.units import MM
+
+__all__ = ["SimResult", "simulate", "check_motion", "report", "CONTACT_MM"]
+
+#: surfaces closer than this (mm) count as a contact (collision)
+CONTACT_MM = 0.0
+
+
+@dataclass
+class SimResult:
+    runners: Dict[str, ArmRunner]
+    errors: List[ErrorReport] = field(default_factory=list)
+    messages: int = 0
+    wall_time_s: float = 0.0
+    finished: bool = False
+    reason: str = ""
+
+    @property
+    def makespan_s(self):
+        """Simulated time from the first motion of any arm to the last arm done."""
+        starts = [r.stats.first_motion_s for r in self.runners.values() if r.stats.first_motion_s is not None]
+        ends = [r.stats.done_s if r.stats.done_s is not None else r.clock for r in self.runners.values()
+                if r.stats.first_motion_s is not None]
+        return (max(ends) - min(starts)) if starts else 0.0
+
+
+def simulate(programs, cell, dt=2.0, max_time=10 * 24 * 3600.0, planner_kw=None, slow=None):
+    """Run the programs of a job to completion.
+
+    ``programs``: {arm name: :class:`~ambots.coordinate.ArmProgram`};
+    ``dt``: the simulated step (s) between message exchanges (the runners
+    keep exact time inside a step and wake exactly when a report arrives);
+    ``slow``: optional {arm name: factor} stretching an arm's motion (a
+    firmware that runs slower than planned).  Returns :class:`SimResult`."""
+    from ambots.motion import MotionPlanner
+    t_wall = time.perf_counter()
+    runners = {}
+    for name, prog in programs.items():
+        planner = MotionPlanner(prog.arm, cell, **(planner_kw or {}))
+        if slow and name in slow:
+            planner.time_scale = float(slow[name])
+        runners[name] = ArmRunner(prog.arm, cell, planner=planner, record=True)
+    by_id = {r.id: r for r in runners.values()}
+    result = SimResult(runners)
+
+    def deliver(t_sent, msg, src):
+        result.messages += 1
+        if isinstance(msg, (Status, ErrorReport)):
+            if isinstance(msg, ErrorReport):
+                result.errors.append(msg)
+            for r in runners.values():
+                if r is not src:
+                    r.handle(msg, now=t_sent)
+        elif msg.robot in by_id:
+            target = by_id[msg.robot]
+            target.handle(msg, now=max(t_sent, target.clock))
+
+    for name, prog in programs.items():
+        runners[name].handle(LoadChunk(prog.arm.id, prog.text, chunk_id=1))
+    for name, prog in programs.items():
+        if prog.start_first:
+            runners[name].handle(Start(prog.arm.id))
+    t = 0.0
+    active = (ArmState.PRINTING, ArmState.WAITING, ArmState.PAUSED)
+    while t < max_time:
+        t += dt
+        for _ in range(1000):                  # exchange until nothing new at this time
+            moved = False
+            for r in runners.values():
+                r.advance(t)
+                while r.outbox:
+                    moved = True
+                    deliver(*r.outbox.pop(0), r)
+            if not moved:
+                break
+        states = [r.state for r in runners.values()]
+        if any(s is ArmState.ERROR for s in states):
+            result.reason = "arm error"
+            break
+        if not any(s in active for s in states):
+            result.finished = all(s is ArmState.DONE for s in states)
+            if not result.finished:
+                result.reason = "arms idle but not done: %s" % {n: r.state.name for n, r in runners.items()}
+            break
+        if all(s is ArmState.WAITING for s in states if s in active) and \
+                all(r.clock < t for r in runners.values() if r.state is ArmState.WAITING) and \
+                not any(s is ArmState.PRINTING for s in states):
+            result.reason = "deadlock: every active arm waits"
+            break
+    result.wall_time_s = time.perf_counter() - t_wall
+    return result
+
+
+def _trace(runner):
+    if not runner.trace_t:
+        q = runner.q[None]
+        return np.array([0.0]), q
+    return np.concatenate(runner.trace_t), np.concatenate(runner.trace_q)
+
+
+def _resample(t, Q, grid):
+    out = np.empty((len(grid), Q.shape[1]))
+    for j in range(Q.shape[1]):
+        out[:, j] = np.interp(grid, t, Q[:, j])
+    return out
+
+
+def check_motion(result, cell, step_s=0.1, home=None):
+    """Clearances of the executed motion.
+
+    Every arm's joints are sampled every ``step_s`` simulated seconds (and
+    held at the last/first pose outside its trace).  The printed part is the
+    box around every bead deposited so far (its top grows with time); an
+    arm's nozzle link stops 5 mm above the tip, so printing is not contact.
+
+    Returns a dict: ``collisions`` {arm_arm, arm_bed, arm_part: samples in
+    contact}, ``min_clearance_mm`` (closest approach of two arms),
+    ``min_bed_clearance_mm``, ``min_part_clearance_mm``, ``samples``."""
+    from ambots.collision import ArmBody, bed_clearance, clearance_between, part_clearance
+    runners = result.runners
+    names = list(runners)
+    traces = {n: _trace(runners[n]) for n in names}
+    t_end = max(float(tr[0][-1]) for tr in traces.values())
+    grid = np.arange(0.0, t_end + step_s, step_s)
+    bodies = {n: ArmBody.from_arm(runners[n].arm) for n in names}
+    Qs = {n: _resample(traces[n][0], traces[n][1], grid) for n in names}
+    out = {"collisions": {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}, "samples": int(len(grid)),
+           "min_clearance_mm": None, "min_bed_clearance_mm": None, "min_part_clearance_mm": None,
+           "closest_pair": None, "closest_time_s": None}
+    # arm-arm
+    best = np.inf
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            c = clearance_between(bodies[a], Qs[a], bodies[b], Qs[b])
+            out["collisions"]["arm_arm"] += int(np.sum(c < CONTACT_MM * MM))
+            k = int(np.argmin(c))
+            if c[k] < best:
+                best = float(c[k])
+                out["closest_pair"], out["closest_time_s"] = [a, b], float(grid[k])
+    if len(names) > 1:
+        out["min_clearance_mm"] = best / MM
+    # arm-bed
+    bed_min = np.inf
+    for n in names:
+        c = bed_clearance(bodies[n], Qs[n], cell)
+        out["collisions"]["arm_bed"] += int(np.sum(c < CONTACT_MM * MM))
+        bed_min = min(bed_min, float(c.min()))
+    out["min_bed_clearance_mm"] = bed_min / MM
+    # arm-part: the box of what was deposited by each sample time
+    beads = [b for r in runners.values() for b in r.beads]
+    if beads:
+        P = np.concatenate([np.concatenate([b.p0, b.p1]) for b in beads])
+        T = np.concatenate([np.concatenate([b.t, b.t]) for b in beads])
+        order = np.argsort(T)
+        ztop = np.maximum.accumulate(P[order, 2])
+        idx = np.searchsorted(T[order], grid, side="right") - 1
+        lo_xy, hi_xy = P[:, :2].min(axis=0), P[:, :2].max(axis=0)
+        bed_z = cell.bed.pose[2, 3]
+        part_min = np.inf
+        have = idx >= 0
+        for n in names:
+            if not have.any():
+                break
+            c = np.full(len(grid), np.inf)
+            zt = ztop[idx[have]]
+            for level in np.unique(np.round(zt, 4)):
+                sel = np.where(have)[0][np.round(zt, 4) == level]
+                lo = np.array([lo_xy[0], lo_xy[1], bed_z])
+                hi = np.array([hi_xy[0], hi_xy[1], level])
+                c[sel] = part_clearance(bodies[n], Qs[n][sel], lo, hi)
+            out["collisions"]["arm_part"] += int(np.sum(c < CONTACT_MM * MM))
+            part_min = min(part_min, float(c.min()))
+        out["min_part_clearance_mm"] = part_min / MM if np.isfinite(part_min) else None
+    return out
+
+
+def report(result, motion, job=None, model=None, cell=None, mode=None, slicer=None, wall_time_s=None):
+    """The ``report.json`` dictionary of a finished (or failed) run."""
+    from ambots.motion import FILAMENT_AREA_MM2
+    arms = {}
+    deposit_mm3 = 0.0
+    for name, r in result.runners.items():
+        s = r.stats
+        e = float(sum(b.e_mm.sum() for b in r.beads))
+        deposit_mm3 += e * FILAMENT_AREA_MM2
+        arms[name] = {"id": r.id, "state": r.state.name, "moves": s.moves,
+                      "extrude_mm": round(s.extrude_m / MM, 3), "travel_mm": round(s.travel_m / MM, 3),
+                      "print_time_s": round(s.print_time_s, 3), "idle_time_s": round(s.idle_time_s, 3),
+                      "ik_failures": s.ik_failures, "max_path_error_mm": round(s.max_path_error_mm, 5),
+                      "filament_mm": round(e, 3), "beads": int(sum(len(b.e_mm) for b in r.beads)),
+                      "done_at_s": None if s.done_s is None else round(s.done_s, 3),
+                      "planned_blocks": dict(s.plans)}
+    out = {
+        "model": model if model is not None else (job.model_path if job else None),
+        "cell": cell.name if cell is not None else (job.cell.name if job else None),
+        "mode": mode if mode is not None else (job.mode if job else None),
+        "slicer": slicer if slicer is not None else (job.slicer if job else None),
+        "finished": result.finished, "reason": result.reason,
+        "arms": arms,
+        "makespan_s": round(result.makespan_s, 3),
+        "collisions": motion["collisions"],
+        "min_clearance_mm": None if motion["min_clearance_mm"] is None else round(motion["min_clearance_mm"], 2),
+        "min_bed_clearance_mm": round(motion["min_bed_clearance_mm"], 2),
+        "min_part_clearance_mm": None if motion["min_part_clearance_mm"] is None
+        else round(motion["min_part_clearance_mm"], 2),
+        "closest_pair": motion.get("closest_pair"), "closest_time_s": motion.get("closest_time_s"),
+        "deposit_volume_mm3": round(deposit_mm3, 1),
+        "model_volume_mm3": round(float(job.mesh.volume), 1) if job is not None and job.mesh is not None else None,
+        "errors": [{"arm": e.robot, "line": e.line, "message": e.message} for e in result.errors],
+        "messages": result.messages,
+        "wall_time_s": round(result.wall_time_s if wall_time_s is None else wall_time_s, 3),
+    }
+    return out
