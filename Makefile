@@ -19,13 +19,14 @@ APT_PACKAGES := ros-core catkin python3-rospy python3-roslaunch python3-rostest 
 # the venv first on PATH (done by the package's catkin env hook)
 ROSENV := source $(WS)/devel/setup.bash &&
 
-.PHONY: help setup apt venv workspace test unit rostest bench demo clean
+.PHONY: help setup apt venv workspace test unit rostest bench demo print clean
 
 help:
 	@echo "make setup  - install what is missing (apt, .venv, catkin workspace)"
 	@echo "make demo   - set up, then run the demo headless; outputs in out/demo"
 	@echo "make test   - set up, then run every test (pytest + rostest)"
 	@echo "make bench  - set up, then run the benchmarks"
+	@echo "make print MODEL=path OUT=dir [CELL= MODE= SLICER=] - print any model like the demo"
 
 setup: apt venv workspace
 
@@ -72,10 +73,21 @@ bench: setup
 	$(ROSENV) cd $(ROOT) && $(PY) tests/bench/run.py
 
 demo: setup
-	mkdir -p out/demo
-	$(ROSENV) cd $(ROOT) && $(PY) -m ambots cell --urdf out/demo/cell.urdf | tee out/demo/cell.txt
+	rm -rf out/demo && mkdir -p out/demo
 	$(ROSENV) cd $(ROOT) && roslaunch ambots demo.launch out:=$(ROOT)/out/demo
-	@ls -l out/demo
+	@ls -l out/demo && $(PY) -c "import json; r = json.load(open('out/demo/report.json')); \
+	  print('finished:', r['finished'], '| makespan', r['makespan_s'], 's | collisions', r['collisions'], \
+	        '| min clearance', r['min_clearance_mm'], 'mm | wall', r['wall_time_s'], 's')"
+
+# any model, the same way: make print MODEL=path [CELL=...] [MODE=...] [SLICER=...] [SPEED=max] OUT=dir
+MODE ?= concurrent
+SLICER ?= builtin
+SPEED ?= max
+print: setup
+	@[ -n "$(MODEL)" ] && [ -n "$(OUT)" ] || { echo "usage: make print MODEL=path OUT=dir [CELL=...] [MODE=...] [SLICER=...]"; exit 2; }
+	mkdir -p "$(OUT)"
+	$(ROSENV) roslaunch ambots demo.launch out:="$(abspath $(OUT))" model:="$(abspath $(MODEL))" \
+	  mode:=$(MODE) slicer:=$(SLICER) speed:=$(SPEED) $(if $(CELL),cell:="$(abspath $(CELL))")
 
 clean:
 	rm -rf $(WS) out

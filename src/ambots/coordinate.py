@@ -293,8 +293,9 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent):
     """Two colours (every seam separates a colour-0 from a colour-1 arm).
 
     Each arm's work is cut into bands by distance from its nearest seam:
-    band i (0 <= i < k-1) is [i w, (i+1) w) with w = zone / (k-1), band k-1
-    the rest.  In phase i of a layer one colour prints band i while the
+    band i (0 <= i < k-1) is [i w, (i+1) w) with w >= zone / (k-1), band
+    k-1 the rest (w = the part's reach from the seam / k when that is
+    wider, so that the phases balance).  In phase i of a layer one colour prints band i while the
     other prints band k-1-i, so two nozzles across a seam are always at
     least (k-1) w = zone apart.  Directions alternate with the layer (even
     layers: colour 0 moves away from the seam, colour 1 towards it; odd
@@ -319,9 +320,12 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent):
                  else np.full(len(segs), np.inf))
             dur = np.array([_seg_time([s]) for s in segs])
             stats[a.name, layer] = (d, dur)
+    # the widest reach from a seam: bands wider than zone / (k-1) (equal
+    # widths H / k) keep the spacing and balance the phases
+    far = max([float(np.max(d[np.isfinite(d)])) for d, *_ in stats.values() if np.isfinite(d).any()] or [0.0])
     best = None
     for k in range(2, 13):
-        w = max(zone_mm, 1e-3) / (k - 1)
+        w = max(max(zone_mm, 1e-3) / (k - 1), far / k)
         est = 0.0
         for layer in range(n_layers):
             phase_t = np.zeros(k)
@@ -335,9 +339,8 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent):
                 np.maximum.at(phase_t, phases, per_band)
             est += phase_t.sum() + k * 0.5          # a barrier costs about half a second
         if best is None or est < best[0] - 1e-9:
-            best = (est, k)
-    k = best[1]
-    w = max(zone_mm, 1e-3) / (k - 1)
+            best = (est, k, w)
+    k, w = best[1], best[2]
     steps = {}
     for a in arms:
         for layer in range(n_layers):
