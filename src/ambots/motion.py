@@ -118,8 +118,9 @@ def read_program(text, path="<chunk>", max_run=400):
         kind = type(ev)
         if kind is Segment or kind is Dwell:
             directives_before(ev.line)
-            layer_of_line[last_line + 1:ev.line + 1] = last_layer
+            layer_of_line[last_line + 1:ev.line] = last_layer
             last_line, last_layer = ev.line, max(ev.layer, 0)
+            layer_of_line[ev.line] = last_layer         # the event's own line: its own layer
             if kind is Segment:
                 if run and (ev.layer != run[-1].layer or len(run) >= max_run):
                     flush()
@@ -293,7 +294,9 @@ class MotionPlanner:
         # sample points: the start, then each segment's interior points and end
         seg_of = np.repeat(np.arange(n), pieces)                      # per interval
         frac = (np.arange(len(seg_of)) - np.repeat(np.cumsum(pieces) - pieces, pieces) + 1) / np.repeat(pieces, pieces)
-        P_mm = np.concatenate([S[:1], S[seg_of] + (E[seg_of] - S[seg_of]) * frac[:, None]])
+        # (1 - f) S + f E puts a segment's last sample exactly on its end (S + (E - S) f
+        # need not: 0.8 + (0.2 - 0.8) != 0.2), so a following E-only move has zero length
+        P_mm = np.concatenate([S[:1], (1.0 - frac[:, None]) * S[seg_of] + frac[:, None] * E[seg_of]])
         seg_of = np.concatenate([[seg_of[0]], seg_of])                 # waypoint k ends interval of segment seg_of[k]
         P = self.bed_mm_to_base(P_mm)
         Q, ok = self.kin.ik_path(P, q0, self.down, max_joint_step=0.35)

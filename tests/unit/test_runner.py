@@ -1,0 +1,466 @@
+"""One arm's firmware state machine (ambots.runner.ArmRunner) on a clock the
+test drives: A5 + A1 run a program to DONE, beads are laid where the joints
+really put the nozzle, A2/A6 pause at a line end and resume with the same
+deposit, A9 barriers wait for the other arm's A10 reports, bad input and
+unreachable lines are reported (A11) with their line."""
+import numpy as np
+import pytest
+
+from ambots.config import default_cell_path, load_cell
+from ambots.gcode import Segment, parse_gcode_text
+from ambots.motion import MotionPlanner
+from ambots.protocol import (ArmState, ClearChunk, ErrorReport, LoadChunk, Pause, Resume, SendPosition, Start,
+                             Status, WaitFor)
+from ambots.runner import ArmRunner
+
+MM = 1e-3
+
+# arm R1 (the Kinova); lines 1-based
+PROGRAM = """\
+G21
+G90
+M83
+;LAYER_CHANGE
+;Z:0.2
+G0 X-30 Y-10 Z0.2 F9000
+G1 X30 Y-10 E2.0 F1800
+G1 X30 Y0 E0.4
+G1 X-30 Y0 E2.0
+G1 E-0.8 F2100
+G0 Z0.6 F9000
+G0 X-30 Y10
+G0 Z0.2
+G1 E0.8 F2100
+G1 X30 Y10 E2.0 F1800
+;LAYER_CHANGE
+;Z:0.4
+G0 Z0.4 F9000
+G1 X-30 Y10 E2.0 F1800
+G1 X-30 Y-10 E0.8
+"""
+N_LINES = len(PROGRAM.split("\n"))
+BARRIER_LINE = 10          # where test_barrier puts its ;@A9
+STEP = 0.5                 # simulated seconds per advance
+
+
+@pytest.fixture(scope="module")
+def cell():
+    return load_cell(default_cell_path())
+
+
+@pytest.fixture(scope="module")
+def arm(cell):
+    return cell.arm("kinova")
+
+
+@pytest.fixture(scope="module")
+def planner(arm, cell):
+    return MotionPlanner(arm, cell)
+
+
+def new_runner(arm, cell, planner, **kw):
+    return ArmRunner(arm, cell, planner=planner, record=True, **kw)
+
+
+def load_and_start(r, text=PROGRAM, now=0.0):
+    r.handle(LoadChunk(r.id, text, chunk_id=1), now=now)
+    r.handle(Start(r.id), now=now)
+
+
+def run(r, until=None, t_max=2000.0):
+    """Advance in STEP steps while the arm prints (or until ``until``)."""
+    t = r.clock
+    while r.state is ArmState.PRINTING and t < t_max:
+        if until is not None and t >= until:
+            break
+        t += STEP
+        r.advance(t)
+    return r
+
+
+def messages(r, kind):
+    return [m for _, m in r.outbox if isinstance(m, kind)]
+
+
+def concat(beads, name):
+    return np.concatenate([getattr(b, name) for b in beads]) if beads else np.zeros(0)
+
+
+def same_beads(a, b):
+    """The same bead sequence (positions to floating-point rounding)."""
+    for name in ("line", "layer"):
+        np.testing.assert_array_equal(concat(a.beads, name), concat(b.beads, name), err_msg=name)
+    for name in ("p0", "p1", "e_mm"):
+        np.testing.assert_allclose(concat(a.beads, name), concat(b.beads, name), rtol=0, atol=1e-12,
+                                   err_msg=name)
+
+
+def moving_extrusion(text):
+    """{line: filament} of the lines that lay a bead (moving, E > 0)."""
+    return {s.line: s.e for s in parse_gcode_text(text) if type(s) is Segment and s.extrude and s.start != s.end}
+
+
+def bead_filament_by_line(beads):
+    out = {}
+    for line, e in zip(concat(beads, "line"), concat(beads, "e_mm")):
+        out[int(line)] = out.get(int(line), 0.0) + float(e)
+    return out
+
+
+@pytest.fixture(scope="module")
+def reference(arm, cell, planner):
+    """The uninterrupted run."""
+    r = new_runner(arm, cell, planner)
+    load_and_start(r)
+    run(r)
+    return r
+
+
+# ------------------------------------------------------------ a plain run
+def test_load_start_run_to_done(reference):
+    r = reference
+    assert r.state is ArmState.DONE
+    assert r.done_line == N_LINES and r.percent == 100.0
+    states = [m.state for m in messages(r, Status)]
+    assert states[0] is ArmState.IDLE                 # after A5
+    assert states[1] is ArmState.PRINTING             # after A1
+    last = messages(r, Status)[-1]
+    assert last.state is ArmState.DONE and last.line == N_LINES and last.percent == 100.0
+    assert last.position is not None
+    np.testing.assert_allclose(last.position, (-30, -10, 0.4), atol=2e-3)
+    assert not messages(r, ErrorReport)
+    assert r.stats.moves == len([s for s in parse_gcode_text(PROGRAM) if type(s) is Segment])
+    assert r.stats.ik_failures == 0
+    assert 0.0 < r.stats.max_path_error_mm <= 0.1
+    assert r.stats.done_s == pytest.approx(r.stats.print_time_s)
+    assert r.stats.idle_time_s == 0.0
+    assert r.layer == 1
+
+
+def test_beads_are_where_the_joints_put_the_nozzle(reference, arm, planner):
+    """Each bead runs from the FK of one executed waypoint to the FK of the
+    next (world = base pose x KDL FK), at that waypoint's time."""
+    r = reference
+    tt, tq = np.concatenate(r.trace_t), np.concatenate(r.trace_q)
+    assert np.all(np.diff(tt) >= 0)
+    p0, p1, bt = concat(r.beads, "p0"), concat(r.beads, "p1"), concat(r.beads, "t")
+    assert len(bt) >= 10
+    for j in range(len(bt)):
+        i = int(np.searchsorted(tt, bt[j], side="right")) - 1
+        assert tt[i] == bt[j]
+        assert i >= 1
+        for p, q in ((p1[j], tq[i]), (p0[j], tq[i - 1])):
+            T = arm.base_pose @ planner.kin.fk(q)
+            np.testing.assert_allclose(p, T[:3, 3], atol=1e-9)
+
+
+def test_bead_filament_is_the_programs_extrusion(reference):
+    r = reference
+    want = moving_extrusion(PROGRAM)
+    got = bead_filament_by_line(r.beads)
+    assert set(got) == set(want)
+    for line in want:
+        assert got[line] == pytest.approx(want[line], abs=1e-9)
+    assert sum(got.values()) == pytest.approx(9.2, abs=1e-9)
+    assert np.all(concat(r.beads, "e_mm") > 0)
+    assert set(concat(r.beads, "layer").astype(int)) == {0, 1}
+
+
+class OffsetIK:
+    """A solver whose answers are off by a fixed joint offset (a badly
+    calibrated arm): the nozzle really goes somewhere else than commanded."""
+
+    def __init__(self, kin, offset):
+        self._kin, self._offset = kin, np.asarray(offset, float)
+
+    def __getattr__(self, name):
+        return getattr(self._kin, name)
+
+    def ik(self, *a, **kw):
+        return self._kin.ik(*a, **kw) + self._offset
+
+    def ik_batch(self, *a, **kw):
+        Q, ok, err = self._kin.ik_batch(*a, **kw)
+        return Q + self._offset, ok, err
+
+    def ik_path(self, *a, **kw):
+        Q, ok = self._kin.ik_path(*a, **kw)
+        return Q + self._offset, ok
+
+
+def test_beads_follow_forward_kinematics_not_the_commanded_points(arm, cell, planner):
+    """With joints that do not reach the commanded points, the deposit is
+    where the nozzle really is (FK of the joints), not on the G-code line."""
+    offset = np.zeros(planner.kin.dof)
+    offset[1] = 2e-3                                           # shoulder: ~1 mm at the nozzle
+    bad = MotionPlanner(arm, cell, kin=OffsetIK(planner.kin, offset), tolerance_mm=50.0)
+    r = new_runner(arm, cell, bad)
+    load_and_start(r)
+    run(r)
+    assert r.state is ArmState.DONE
+    tt, tq = np.concatenate(r.trace_t), np.concatenate(r.trace_q)
+    p1, bt, lines = concat(r.beads, "p1"), concat(r.beads, "t"), concat(r.beads, "line")
+    T_bed = cell.bed.pose
+    segs = {s.line: s for s in parse_gcode_text(PROGRAM) if type(s) is Segment}
+    off_line = []
+    for j in range(len(bt)):
+        i = int(np.searchsorted(tt, bt[j], side="right")) - 1
+        fk = (arm.base_pose @ planner.kin.fk(tq[i]))[:3, 3]
+        np.testing.assert_allclose(p1[j], fk, atol=1e-9)
+        s = segs[int(lines[j])]
+        A, B = (np.asarray(p, float) * MM @ T_bed[:3, :3].T + T_bed[:3, 3] for p in (s.start, s.end))
+        d = B - A
+        u = np.clip((p1[j] - A) @ d / (d @ d), 0, 1)
+        off_line.append(np.linalg.norm(p1[j] - (A + u * d)))
+    assert min(off_line) > 0.2 * MM       # the test can tell FK from the commanded line
+
+
+def test_joints_between_waypoints_follow_the_timed_trajectory(reference, arm, cell, planner):
+    """joints(now) is the joint-linear interpolation of the executed
+    waypoints at that time (what a controller would command)."""
+    ref = reference
+    tt = np.concatenate([[0.0], np.concatenate(ref.trace_t)])
+    tq = np.concatenate([np.asarray(arm.profile.home, float)[None], np.concatenate(ref.trace_q)])
+    r = new_runner(arm, cell, planner)
+    load_and_start(r)
+    for t in np.arange(0.37, ref.stats.done_s - 0.5, 1.13):
+        r.advance(t)
+        assert r.state is ArmState.PRINTING and r.clock == t
+        want = np.array([np.interp(t, tt, tq[:, j]) for j in range(tq.shape[1])])
+        np.testing.assert_allclose(r.joints(t), want, atol=1e-9)
+
+
+# ------------------------------------------------------------ pause / resume
+def test_pause_lands_on_a_line_end_and_resume_gives_the_same_deposit(reference, arm, cell, planner):
+    ref = reference
+    # pause in the middle of line 9 (a 60 mm bead)
+    t9 = concat(ref.beads, "t")[concat(ref.beads, "line") == 9]
+    t_pause = 0.5 * (t9.min() + t9.max())
+    r = new_runner(arm, cell, planner)
+    load_and_start(r)
+    r.advance(t_pause)
+    assert r.state is ArmState.PRINTING
+    r.handle(Pause(r.id))
+    r.advance(t_pause + 20.0)
+    assert r.state is ArmState.PAUSED
+    st = messages(r, Status)[-1]
+    assert st.state is ArmState.PAUSED and st.line == 9 == r.done_line
+    # no partial line: every line up to 9 is complete, nothing after it
+    got, want = bead_filament_by_line(r.beads), moving_extrusion(PROGRAM)
+    assert set(got) == {line for line in want if line <= 9}
+    for line in got:
+        assert got[line] == pytest.approx(want[line], abs=1e-9)
+    np.testing.assert_allclose(r.nozzle_mm(), (-30, 0, 0.2), atol=1e-3)
+    t_stop = concat(r.beads, "t").max()
+    assert t_stop == pytest.approx(t9.max())
+    # paused: nothing moves while time passes
+    q, n = r.q.copy(), len(r.beads)
+    r.advance(t_pause + 60.0)
+    assert r.state is ArmState.PAUSED and len(r.beads) == n
+    np.testing.assert_array_equal(r.q, q)
+    np.testing.assert_array_equal(r.joints(t_pause + 60.0), q)
+    # resume: same beads as the uninterrupted run, later by the pause
+    r.handle(Resume(r.id))
+    assert r.state is ArmState.PRINTING
+    assert messages(r, Status)[-1].state is ArmState.PRINTING
+    run(r)
+    assert r.state is ArmState.DONE
+    same_beads(r, ref)
+    shift = (t_pause + 60.0) - t_stop
+    t_ref, t_got = concat(ref.beads, "t"), concat(r.beads, "t")
+    before = t_ref <= t_stop
+    np.testing.assert_allclose(t_got[before], t_ref[before])
+    np.testing.assert_allclose(t_got[~before], t_ref[~before] + shift, atol=1e-9)
+    assert r.stats.idle_time_s == pytest.approx(shift)
+    assert r.stats.print_time_s == pytest.approx(ref.stats.print_time_s)
+    assert r.stats.done_s == pytest.approx(ref.stats.done_s + shift)
+
+
+def test_pause_in_the_travel_from_home_stops_at_its_end(arm, cell, planner):
+    r = new_runner(arm, cell, planner)
+    load_and_start(r)
+    r.advance(0.3)                              # in the joint move to line 6's end
+    r.handle(Pause(r.id))
+    r.advance(100.0)
+    assert r.state is ArmState.PAUSED and r.done_line == 6
+    assert not r.beads
+    np.testing.assert_allclose(r.nozzle_mm(), (-30, -10, 0.2), atol=1e-3)
+    r.handle(Start(r.id))                        # A1 on a paused arm resumes too
+    assert r.state is ArmState.PRINTING
+    run(r)
+    assert r.state is ArmState.DONE
+
+
+# ------------------------------------------------------------ refusals
+def test_start_without_a_chunk_is_an_error(arm, cell, planner):
+    r = new_runner(arm, cell, planner)
+    r.handle(Start(r.id))
+    assert r.state is ArmState.IDLE
+    errs = messages(r, ErrorReport)
+    assert len(errs) == 1 and errs[0].robot == r.id and "no chunk" in errs[0].message
+
+
+def test_load_while_printing_is_refused(arm, cell, planner, reference):
+    r = new_runner(arm, cell, planner)
+    load_and_start(r)
+    r.advance(5.0)
+    assert r.state is ArmState.PRINTING
+    chunk = r.chunk
+    r.handle(LoadChunk(r.id, "G1 X0 Y0 Z5 F600\n", chunk_id=2))
+    errs = messages(r, ErrorReport)
+    assert len(errs) == 1 and "A5 refused" in errs[0].message and "PRINTING" in errs[0].message
+    assert r.state is ArmState.PRINTING and r.chunk == chunk
+    run(r)
+    assert r.state is ArmState.DONE
+    same_beads(r, reference)
+
+
+@pytest.mark.parametrize("line, bad", [(8, "G1 X30 Y0 E0.4 Q5"), (8, "G1 X30 Y0 Enan"), (8, ";@A9 R1 W1 N3")])
+def test_a_chunk_with_a_bad_line_is_refused_naming_it(arm, cell, planner, line, bad):
+    lines = PROGRAM.split("\n")
+    lines[line - 1] = bad
+    r = new_runner(arm, cell, planner)
+    r.handle(LoadChunk(r.id, "\n".join(lines), chunk_id=3))
+    errs = messages(r, ErrorReport)
+    assert len(errs) == 1 and errs[0].line == line
+    assert ":%d" % line in errs[0].message
+    assert r.state is ArmState.IDLE and r.chunk is None and not r.items
+    r.handle(Start(r.id))
+    assert r.state is ArmState.IDLE and len(messages(r, ErrorReport)) == 2
+
+
+def test_clear_chunk_stops_the_arm(arm, cell, planner):
+    r = new_runner(arm, cell, planner)
+    load_and_start(r)
+    r.advance(5.0)
+    r.handle(ClearChunk(r.id))
+    assert r.state is ArmState.IDLE and r.chunk is None
+    assert messages(r, ErrorReport) and messages(r, Status)[-1].state is ArmState.IDLE
+
+
+# ------------------------------------------------------------ barriers
+def with_barrier(n):
+    lines = PROGRAM.split("\n")
+    lines.insert(BARRIER_LINE - 1, ";@A9 R1 W2 N%d" % n)
+    return "\n".join(lines)
+
+
+def test_barrier_waits_for_the_other_arms_line_and_resumes_at_its_report(arm, cell, planner):
+    text = with_barrier(40)
+    # the same program with the barrier already satisfied: no wait
+    free = new_runner(arm, cell, planner)
+    free.handle(Status(2, ArmState.PRINTING, 0, 40, 50.0), now=0.0)
+    load_and_start(free, text)
+    run(free)
+    assert free.state is ArmState.DONE and free.stats.idle_time_s == 0.0
+
+    r = new_runner(arm, cell, planner)
+    load_and_start(r, text)
+    run(r, t_max=100.0)
+    assert r.state is ArmState.WAITING
+    t_wait = r.clock
+    # it told the others where it is before waiting: the last line before the barrier
+    st = messages(r, Status)[-1]
+    assert st.line == BARRIER_LINE - 1 and st.state is ArmState.PRINTING
+    assert set(bead_filament_by_line(r.beads)) == {7, 8, 9}
+    n_beads = len(r.beads)
+    r.advance(200.0)
+    assert r.state is ArmState.WAITING and r.clock == t_wait and len(r.beads) == n_beads
+    # a report of an earlier line, or about itself, does not release it
+    r.handle(Status(2, ArmState.PRINTING, 0, 39, 40.0), now=150.0)
+    r.handle(Status(1, ArmState.DONE, 5, 99, 100.0), now=150.0)
+    r.advance(250.0)
+    assert r.state is ArmState.WAITING and len(r.beads) == n_beads
+    # line 40 reported at t = 260 (the arm's clock is already at 300)
+    r.handle(Status(2, ArmState.PRINTING, 0, 40, 41.0), now=260.0)
+    r.advance(300.0)
+    assert r.state is not ArmState.WAITING
+    run(r)
+    assert r.state is ArmState.DONE
+    assert r.stats.idle_time_s == pytest.approx(260.0 - t_wait)
+    assert r.stats.done_s == pytest.approx(free.stats.done_s + 260.0 - t_wait)
+    first_after = concat(r.beads, "t")[n_beads_t(r, n_beads)]
+    first_free = concat(free.beads, "t")[n_beads_t(free, n_beads)]
+    assert first_after == pytest.approx(first_free + 260.0 - t_wait)
+    same_beads(r, free)
+
+
+def n_beads_t(r, n_blocks):
+    """Index (in the concatenated beads) of the first bead after ``n_blocks`` bead blocks."""
+    return sum(len(b.t) for b in r.beads[:n_blocks])
+
+
+def test_barrier_released_by_the_other_arm_done(arm, cell, planner):
+    r = new_runner(arm, cell, planner)
+    load_and_start(r, with_barrier(10 ** 6))
+    run(r, t_max=100.0)
+    assert r.state is ArmState.WAITING
+    r.handle(Status(2, ArmState.DONE, 3, 12, 100.0), now=r.clock + 1.0)
+    r.advance(r.clock + 2.0)
+    run(r)
+    assert r.state is ArmState.DONE
+
+
+def test_pause_while_waiting_then_resume_keeps_waiting(arm, cell, planner):
+    r = new_runner(arm, cell, planner)
+    load_and_start(r, with_barrier(40))
+    run(r, t_max=100.0)
+    assert r.state is ArmState.WAITING
+    r.handle(Pause(r.id))
+    assert r.state is ArmState.PAUSED and messages(r, Status)[-1].state is ArmState.PAUSED
+    r.handle(Resume(r.id))
+    assert r.state is ArmState.WAITING
+    r.handle(Status(2, ArmState.PRINTING, 0, 40, 41.0), now=r.clock + 1.0)
+    r.advance(r.clock + 2.0)
+    run(r)
+    assert r.state is ArmState.DONE
+
+
+def test_a9_command_makes_an_idle_arm_wait(arm, cell, planner):
+    r = new_runner(arm, cell, planner)
+    r.handle(LoadChunk(r.id, PROGRAM, chunk_id=1))
+    r.handle(WaitFor(r.id, 2, layer=1))
+    assert r.state is ArmState.WAITING
+    r.handle(Status(2, ArmState.PRINTING, 1, 30, 50.0), now=4.0)
+    r.advance(5.0)
+    assert r.state is not ArmState.WAITING
+
+
+# ------------------------------------------------------------ A3, errors
+def test_send_position_reports_the_nozzle(arm, cell, planner):
+    r = new_runner(arm, cell, planner)
+    r.handle(SendPosition(r.id))
+    st = messages(r, Status)[-1]
+    T = arm.base_pose @ planner.kin.fk(np.asarray(arm.profile.home, float))
+    inv = np.linalg.inv(cell.bed.pose)
+    want = (inv[:3, :3] @ T[:3, 3] + inv[:3, 3]) / MM
+    np.testing.assert_allclose(st.position, want, atol=1e-3)
+    assert st.state is ArmState.IDLE and st.robot == r.id
+    # mid-print: where the last reached waypoint is
+    load_and_start(r)
+    r.advance(12.0)
+    r.handle(SendPosition(2))                  # A3 R2 reaching this arm: report for arm 2
+    st = messages(r, Status)[-1]
+    np.testing.assert_allclose(st.position, r.nozzle_mm(), atol=1e-3)
+    assert st.state is ArmState.PRINTING and st.line == r.done_line
+
+
+UNREACHABLE = PROGRAM.replace("G1 X30 Y0 E0.4", "G1 X3000 Y0 E0.4")       # line 8
+
+
+def test_unreachable_line_stops_the_arm_with_an_error_naming_it(arm, cell, planner):
+    r = new_runner(arm, cell, planner)
+    load_and_start(r, UNREACHABLE)
+    run(r)
+    assert r.state is ArmState.ERROR
+    errs = messages(r, ErrorReport)
+    assert len(errs) == 1 and errs[0].line == 8 and errs[0].robot == r.id
+    assert "unreachable" in errs[0].message
+    st = messages(r, Status)[-1]
+    assert st.state is ArmState.ERROR and st.line == 7 and st.position is not None
+    np.testing.assert_allclose(st.position, (30, -10, 0.2), atol=1e-3)
+    assert set(bead_filament_by_line(r.beads)) == {7}
+    assert r.stats.ik_failures == 1
+    t = r.clock
+    r.advance(t + 100.0)                        # stays stopped
+    assert r.state is ArmState.ERROR and set(bead_filament_by_line(r.beads)) == {7}
