@@ -170,6 +170,13 @@ class ArmRunner:
             if msg.robot != self.id:
                 self.peers[msg.robot] = msg
                 self.peer_time[msg.robot] = now
+                if msg.state is ArmState.ERROR and self.state is ArmState.WAITING \
+                        and self.wait is not None and self.wait.other == msg.robot:
+                    # the arm this one waits for failed: hold here (A6 resumes the wait)
+                    self.state = ArmState.PAUSED
+                    self._error(self.done_line, "holding at line %d: arm R%d, which this arm waits "
+                                                "for, stopped with an error" % (self.done_line, msg.robot))
+                    self._report()
             return
         if isinstance(msg, ErrorReport):
             if msg.robot != self.id:
@@ -307,6 +314,11 @@ class ArmRunner:
 
     def _next_block(self):
         """Take the next item.  Returns True if a block is ready to run."""
+        if self.pause_requested:          # between two items is a clean point
+            self.pause_requested = False
+            self.state = ArmState.PAUSED
+            self._report()
+            return False
         if self.idx >= len(self.items):
             self.done_line = self.n_lines
             self.state = ArmState.DONE

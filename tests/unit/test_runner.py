@@ -464,3 +464,19 @@ def test_unreachable_line_stops_the_arm_with_an_error_naming_it(arm, cell, plann
     t = r.clock
     r.advance(t + 100.0)                        # stays stopped
     assert r.state is ArmState.ERROR and set(bead_filament_by_line(r.beads)) == {7}
+
+
+def test_an_arm_waiting_for_a_failed_arm_holds_and_says_why(cell):
+    from ambots.protocol import ArmState, ErrorReport, LoadChunk, Start, Status
+    from ambots.runner import ArmRunner
+    arm = cell.arm("kinova")
+    text = "G21\nG90\nM83\nG0 X0 Y0 Z5 F3000\n;@A9 R1 W2 N50\nG0 X5 Y0 Z5\n"
+    r = ArmRunner(arm, cell)
+    r.handle(LoadChunk(arm.id, text, chunk_id=1))
+    r.handle(Start(arm.id))
+    r.advance(100.0)
+    assert r.state is ArmState.WAITING
+    r.handle(Status(2, ArmState.ERROR, 0, 10, 5.0), now=100.0)
+    assert r.state is ArmState.PAUSED
+    errors = [m for _, m in r.outbox if isinstance(m, ErrorReport)]
+    assert errors and "R2" in errors[-1].message and errors[-1].line == 5
