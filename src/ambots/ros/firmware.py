@@ -1,0 +1,399 @@
+"""ROS side of one arm's firmware: :class:`ambots.runner.ArmRunner` (the
+state machine, no ROS) on a simulated clock, talking to the communication
+hub, publishing joint states, the deposit and run statistics.
+
+* Inbox ``topics.arm_topic(arm)`` (std_msgs/String, from the hub): every
+  numbered message is acknowledged (``A8 R<sender> Q<q> S<arm id>``) and,
+  the first time only (:class:`~ambots.reliable.Receiver`,
+  ``Verdict.NEW``), queued for the runner; an A8 settles one of our
+  messages.  Text that cannot be decoded is logged and ignored (the hub has
+  validated it; a corrupt copy is not acknowledged, so it comes again).
+* Outbox: the runner's A10/A11 (and directives for other arms) go to
+  ``topics.HUB_TOPIC`` numbered by a :class:`~ambots.reliable.Sender`
+  (``S<arm id>``, Q from the wall clock) and are sent again until the hub
+  acknowledges them.  While printing, an A10 with the position is also sent
+  every ``report_period`` s when the line, layer or percentage changed.
+* The clock: one loop thread owns the runner (every access holds
+  ``self.lock``; the subscriber callbacks only queue commands, so an ack is
+  never held up behind a long planning step).  ``speed`` N: every tick the
+  simulated time advances by N x the wall time elapsed, ticks at ``rate``
+  Hz.  ``speed`` None (``max``): while printing, each iteration advances
+  the runner by ``max_step`` simulated seconds and yields (a short sleep, so
+  the other threads run); otherwise (idle, paused, waiting, done, error)
+  the simulated time follows the wall clock at the tick rate.
+* ``topics.joint_states_topic(arm)``: sensor_msgs/JointState at ``rate``
+  Hz (wall), names ``<arm>/<joint>``, positions ``runner.joints(now)``;
+  robot_state_publisher of the cell turns them into TF (start cell.launch
+  with ``publish_home:=false``).
+* :data:`ambots.rviz.DEPOSIT_TOPIC`: visualization_msgs/MarkerArray of
+  LINE_LIST markers (ns = arm name, world frame, the arm's filament
+  colour), one marker per layer of a run (a new marker id after
+  ``max_beads`` beads); beads are the nozzle positions reached (forward
+  kinematics of the executed joint waypoints).  Only changed markers are
+  republished, at most ``marker_rate`` Hz; a new subscriber gets them all.
+* ``~stats`` (``/<arm>/firmware/stats``, std_msgs/String, latched): JSON
+  with the state, line, layer, percent, the runner's :class:`RunStats` and
+  what the arm knows of the others, whenever its state or another arm's
+  state changes.
+* Travel and joint moves are planned around obstacles: the bed and the
+  other arms of the cell at their latest joint states (subscribed), with
+  ``clearance_mm`` of margin (:mod:`ambots.collision`).
+"""
+import json
+import queue
+import threading
+import time
+from dataclasses import asdict
+
+import numpy as np
+import rospy
+from geometry_msgs.msg import Point
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from visualization_msgs.msg import Marker, MarkerArray
+
+from ambots import topics
+from ambots.collision import ArmBody, bed_clearance, clearance_between
+from ambots.errors import ProtocolError
+from ambots.motion import MotionPlanner
+from ambots.protocol import HUB, Ack, ArmState, ClearChunk, LoadChunk, Start, Status, decode, encode
+from ambots.reliable import Receiver, Sender, Verdict, seq_seed
+from ambots.runner import ArmRunner, RunStats
+from ambots.rviz import DEPOSIT_TOPIC
+from ambots.units import MM
+
+__all__ = ["parse_speed", "DepositMarkers", "CollisionCheck", "FirmwareNode"]
+
+_BARRIER = {ArmState.PRINTING, ArmState.WAITING}
+
+
+def parse_speed(value):
+    """``~speed`` -> float factor (> 0), or None for ``max``."""
+    if isinstance(value, str) and value.strip().lower() in ("max", "inf", "fast"):
+        return None
+    try:
+        speed = float(value)
+    except (TypeError, ValueError):
+        raise ValueError("speed must be a number > 0 or 'max', got %r" % (value,)) from None
+    if not np.isfinite(speed) or speed <= 0:
+        raise ValueError("speed must be a number > 0 or 'max', got %r" % (value,))
+    return speed
+
+
+class DepositMarkers:
+    """Batches an arm's beads into LINE_LIST markers: one per layer of a
+    run, a new one every ``max_beads`` beads.  Marker ids count up over the
+    node's life (a new run never overwrites an earlier deposit).  Not
+    thread-safe: the caller locks."""
+
+    def __init__(self, ns, frame, colour, width_m, max_beads=2000):
+        self.ns, self.frame, self.colour, self.width = ns, frame, colour, width_m
+        self.max_beads = max_beads
+        self._markers = {}        # id -> Marker
+        self._open = {}           # layer -> id of the marker still being filled
+        self._dirty = set()
+        self._next_id = 0
+
+    def new_run(self):
+        """Beads from now on go to new markers."""
+        self._open.clear()
+
+    def _marker(self, layer):
+        mid = self._open.get(layer)
+        if mid is not None and len(self._markers[mid].points) < 2 * self.max_beads:
+            return self._markers[mid]
+        m = Marker()
+        m.header.frame_id = self.frame
+        m.ns, m.id, m.type, m.action = self.ns, self._next_id, Marker.LINE_LIST, Marker.ADD
+        m.pose.orientation.w = 1.0
+        m.scale.x = self.width
+        m.color.r, m.color.g, m.color.b, m.color.a = (float(c) for c in self.colour)
+        self._markers[m.id] = m
+        self._open[layer] = m.id
+        self._next_id += 1
+        return m
+
+    def add(self, bead):
+        """One :class:`~ambots.runner.Bead` (K beads, world frame, m)."""
+        p0, p1 = np.asarray(bead.p0, dtype=float), np.asarray(bead.p1, dtype=float)
+        layers = np.asarray(bead.layer)
+        i = 0
+        while i < len(layers):
+            layer = int(layers[i])
+            j = i
+            while j < len(layers) and layers[j] == layer:
+                j += 1
+            while i < j:
+                m = self._marker(layer)
+                take = min(j - i, self.max_beads - len(m.points) // 2)
+                for a, b in zip(p0[i:i + take].tolist(), p1[i:i + take].tolist()):
+                    m.points.append(Point(*a))
+                    m.points.append(Point(*b))
+                self._dirty.add(m.id)
+                i += take
+
+    def changed(self, stamp=None):
+        """MarkerArray of the markers changed since the last call (or None)."""
+        if not self._dirty:
+            return None
+        out = MarkerArray(markers=[self._markers[i] for i in sorted(self._dirty)])
+        self._dirty.clear()
+        if stamp is not None:
+            for m in out.markers:
+                m.header.stamp = stamp
+        return out
+
+    def all(self):
+        return MarkerArray(markers=[self._markers[i] for i in sorted(self._markers)])
+
+    @property
+    def n_beads(self):
+        return sum(len(m.points) for m in self._markers.values()) // 2
+
+
+class CollisionCheck:
+    """``is_valid(Q)`` for one arm's planner: clear of the bed and, by at
+    least ``margin`` m, of every other arm at its last known joint vector
+    (:meth:`update`; arms not heard of yet are not checked)."""
+
+    def __init__(self, arm, cell, margin=0.005):
+        self.cell, self.margin = cell, margin
+        self.body = ArmBody.from_arm(arm)
+        self.others = {a.name: ArmBody.from_arm(a) for a in cell.arms if a.name != arm.name}
+        self.q_other = {}
+
+    def update(self, name, q):
+        self.q_other[name] = np.asarray(q, dtype=float)
+
+    def __call__(self, Q):
+        Q = np.atleast_2d(np.asarray(Q, dtype=float))
+        ok = bed_clearance(self.body, Q, self.cell) >= 0.0
+        for name, q in list(self.q_other.items()):
+            if ok.any():
+                ok &= clearance_between(self.body, Q, self.others[name], np.tile(q, (len(Q), 1))) >= self.margin
+        return ok
+
+
+class FirmwareNode:
+    """One arm's firmware on ROS (see the module docstring).
+
+    Parameters
+    ----------
+    arm, cell : the arm (:class:`~ambots.config.ArmInstance`) and its cell
+    speed : simulated seconds per wall second, or None for as fast as possible
+    rate : ticks (and joint states) per wall second
+    max_step : simulated seconds per iteration at ``speed`` None
+    """
+
+    def __init__(self, arm, cell, speed=1.0, rate=50.0, max_step=2.0, report_period=1.0,
+                 marker_rate=4.0, bead_width_mm=0.45, clearance_mm=5.0, max_beads=2000,
+                 retry_period=0.05, max_tries=None):
+        self.arm, self.cell = arm, cell
+        self.speed, self.rate, self.max_step = speed, float(rate), float(max_step)
+        self.report_period, self.marker_period = report_period, 1.0 / marker_rate
+        self.retry_period = retry_period
+        self.collision = CollisionCheck(arm, cell, clearance_mm * MM)
+        self.runner = ArmRunner(arm, cell, planner=MotionPlanner(arm, cell, is_valid=self.collision))
+        self.lock = threading.Lock()          # the runner, the markers, the sim clock
+        self._io = threading.Lock()           # sender and receiver
+        self.sender = Sender(arm.id, first_seq=seq_seed(time.time()), max_tries=max_tries)
+        self.receiver = Receiver(arm.id)
+        self._commands = queue.Queue()
+        self.markers = DepositMarkers(arm.name, cell.world_frame, arm.profile.colour, bead_width_mm * MM,
+                                      max_beads)
+        self.sim_now = 0.0
+        self.peers = {}                       # robot id -> last A10 state name
+        self._names = {a.id: a.name for a in cell.arms}
+        self._thread = None
+
+    # ------------------------------------------------------------- ROS
+    def start(self):
+        arm = self.arm
+        if rospy.get_name() != topics.arm_node(arm.name):
+            rospy.logwarn("firmware of %s runs as %s, not %s: the hub will refuse its messages",
+                          arm.name, rospy.get_name(), topics.arm_node(arm.name))
+        self._to_hub = rospy.Publisher(topics.HUB_TOPIC, String, queue_size=1000)
+        self._joints = rospy.Publisher(topics.joint_states_topic(arm.name), JointState, queue_size=10)
+        self._deposit = rospy.Publisher(DEPOSIT_TOPIC, MarkerArray, queue_size=100,
+                                        subscriber_listener=_NewSubscriber(self))
+        self._stats = rospy.Publisher("~stats", String, queue_size=10, latch=True)
+        self._js = JointState(name=[arm.prefix + j for j in arm.profile.joint_names])
+        for other in self.cell.arms:
+            if other.name != arm.name:
+                rospy.Subscriber(topics.joint_states_topic(other.name), JointState,
+                                 self._on_other_joints, callback_args=other, queue_size=1)
+        rospy.Subscriber(topics.arm_topic(arm.name), String, self._on_inbox, queue_size=1000)
+        with self.lock:
+            self._outgoing = [self.runner.status(with_position=True)]   # here I am
+        self._thread = threading.Thread(target=self._loop, name="firmware-%s" % arm.name, daemon=True)
+        self._thread.start()
+
+    def join(self):
+        if self._thread is not None:
+            self._thread.join()
+
+    def _on_other_joints(self, msg, other):
+        try:
+            index = {n: i for i, n in enumerate(msg.name)}
+            q = [msg.position[index[other.prefix + j]] for j in other.profile.joint_names]
+        except (KeyError, IndexError):
+            return
+        self.collision.update(other.name, q)
+
+    def _on_inbox(self, msg):
+        try:
+            message = decode(msg.data)
+        except ProtocolError as exc:
+            rospy.logwarn("%s firmware: ignored malformed message %r: %s", self.arm.name, msg.data[:80],
+                          exc.message)
+            return
+        if isinstance(message, Ack):
+            with self._io:
+                self.sender.acknowledge(message)
+            return
+        with self._io:
+            delivery = self.receiver.receive(message)
+        if delivery.ack is not None:
+            self._to_hub.publish(String(encode(delivery.ack)))
+        if delivery.verdict is Verdict.NEW:
+            self._commands.put(message)
+        elif delivery.verdict is Verdict.STALE:
+            rospy.logwarn("%s firmware: Q%d of node %d is older than the window: not executed",
+                          self.arm.name, message.seq, message.sender or 0)
+        elif delivery.verdict is Verdict.UNNUMBERED:
+            rospy.logwarn("%s firmware: ignored unnumbered %r (everything comes numbered through the hub)",
+                          self.arm.name, msg.data[:80])
+
+    # ------------------------------------------------------------- the loop
+    def _apply(self, message):
+        """Hand one command to the runner (lock held)."""
+        r = self.runner
+        if isinstance(message, (LoadChunk, ClearChunk)):
+            self.markers.new_run()
+        elif isinstance(message, Start) and message.robot == self.arm.id and r.items \
+                and r.state in (ArmState.IDLE, ArmState.DONE):
+            self.markers.new_run()            # a new run: new markers, its own statistics
+            r.stats = RunStats()
+        if isinstance(message, Status) and message.robot != self.arm.id:
+            name = message.state.name
+            if self.peers.get(message.robot) != name:
+                self.peers[message.robot] = name
+                self._peers_changed = True
+                if message.state is ArmState.ERROR:
+                    rospy.logwarn("%s firmware: arm %s (R%d) stopped with an error", self.arm.name,
+                                  self._names.get(message.robot, "?"), message.robot)
+        r.handle(message, now=self.sim_now)
+
+    def _step(self, dt):
+        """One iteration (lock held): commands, the clock, what to publish."""
+        r = self.runner
+        self._peers_changed = False
+        while True:
+            try:
+                self._apply(self._commands.get_nowait())
+            except queue.Empty:
+                break
+        if self.speed is None and r.state is ArmState.PRINTING:
+            r.advance(max(self.sim_now, r.clock) + self.max_step)
+            self.sim_now = max(self.sim_now, r.clock)
+        else:
+            self.sim_now += (self.speed or 1.0) * dt
+            r.advance(self.sim_now)
+        out = [m for _, m in r.outbox]
+        r.outbox.clear()
+        for bead in r.beads:
+            self.markers.add(bead)
+        r.beads.clear()
+        return out, r.joints(self.sim_now), self._peers_changed
+
+    def _loop(self):
+        period = 1.0 / self.rate
+        last = time.monotonic()
+        next_joints = next_markers = next_retry = next_report = last
+        last_state, last_status = None, None
+        while not rospy.is_shutdown():
+            wall = time.monotonic()
+            try:
+                with self.lock:
+                    out, q, peers_changed = self._step(wall - last)
+                    state = self.runner.state
+                    if self._outgoing:
+                        out = self._outgoing + out
+                        self._outgoing = []
+                    if state is ArmState.PRINTING and wall >= next_report:
+                        next_report = wall + self.report_period
+                        st = self.runner.status(with_position=True)
+                        if last_status is None or (st.layer, st.line, st.percent) != \
+                                (last_status.layer, last_status.line, last_status.percent):
+                            out.append(st)
+                    for m in out:
+                        if isinstance(m, Status) and m.robot == self.arm.id:
+                            last_status = m
+                    markers = self.markers.changed(rospy.Time.now()) if wall >= next_markers else None
+                    stats = self._stats_json() if (state != last_state or peers_changed or
+                                                   (state is ArmState.PRINTING and out)) else None
+            except Exception as exc:          # noqa: BLE001 -- a bug: say why, and stop the node
+                rospy.logerr("%s firmware: %s: %s", self.arm.name, type(exc).__name__, exc)
+                rospy.signal_shutdown("firmware loop failed: %s" % exc)
+                raise
+            last = wall
+            self._send(out)
+            if wall >= next_retry:
+                next_retry = wall + self.retry_period
+                with self._io:
+                    due = self.sender.due(wall)
+                for o in due:
+                    self._to_hub.publish(String(encode(o.message)))
+            if wall >= next_joints:
+                next_joints = max(next_joints + period, wall)
+                self._js.header.stamp = rospy.Time.now()
+                self._js.position = [float(v) for v in q]
+                self._joints.publish(self._js)
+            if markers is not None:
+                next_markers = wall + self.marker_period
+                self._deposit.publish(markers)
+            if stats is not None:
+                self._stats.publish(String(stats))
+                if state is not last_state:      # barriers come and go: not worth a line each
+                    log = rospy.logdebug if {state, last_state} == _BARRIER else rospy.loginfo
+                    log("%s firmware: %s", self.arm.name, state.name)
+                last_state = state
+            if self.speed is None and state is ArmState.PRINTING:
+                time.sleep(0.0005)            # let the callbacks run
+            else:
+                time.sleep(max(0.0, period - (time.monotonic() - wall)))
+
+    def _send(self, messages):
+        for m in messages:
+            with self._io:
+                o = self.sender.send(m, HUB, time.monotonic())
+            self._to_hub.publish(String(encode(o.message)))
+
+    def _stats_json(self):
+        r = self.runner
+        return json.dumps({
+            "arm": self.arm.name, "id": self.arm.id, "state": r.state.name, "layer": int(r.layer),
+            "line": int(r.done_line), "percent": round(float(r.percent), 2), "sim_time": round(r.clock, 6),
+            "speed": "max" if self.speed is None else self.speed, "beads": self.markers.n_beads,
+            "stats": asdict(r.stats),
+            "peers": {self._names.get(i, str(i)): s for i, s in sorted(self.peers.items())},
+        })
+
+    def publish_all_markers(self, publish):
+        """Every marker so far, through ``publish(MarkerArray)`` (serialised
+        under the lock: the loop appends to the markers)."""
+        with self.lock:
+            markers = self.markers.all()
+            if markers.markers:
+                publish(markers)
+
+
+class _NewSubscriber(rospy.SubscribeListener):
+    """A new subscriber of the deposit topic gets every marker so far."""
+
+    def __init__(self, node):
+        super().__init__()
+        self.node = node
+
+    def peer_subscribe(self, topic_name, topic_publish, peer_publish):
+        self.node.publish_all_markers(peer_publish)
