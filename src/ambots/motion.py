@@ -92,6 +92,8 @@ def read_program(text, path="<chunk>", max_run=400):
     unused).  Malformed G-code or directives raise
     :class:`~ambots.errors.GCodeError` naming ``path`` and the line."""
     lines = text.split("\n")
+    if len(lines) > 1 and lines[-1] == "":
+        lines.pop()                # a final line break ends the last line, it starts none
     directives = {}
     for number, raw in enumerate(lines, 1):
         if is_directive(raw):

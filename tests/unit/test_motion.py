@@ -147,7 +147,7 @@ def test_read_program_splits_at_directives_dwells_and_layers():
     for it in items:
         if isinstance(it, Moves):
             assert len({s.layer for s in it.segments}) == 1
-    assert n_lines == len(PROGRAM.split("\n"))
+    assert n_lines == len(PROGRAM.splitlines())          # a final line break starts no line
     assert layer_of_line.shape == (n_lines + 1,)
 
 

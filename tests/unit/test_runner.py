@@ -38,7 +38,7 @@ G0 Z0.4 F9000
 G1 X-30 Y10 E2.0 F1800
 G1 X-30 Y-10 E0.8
 """
-N_LINES = len(PROGRAM.split("\n"))
+N_LINES = len(PROGRAM.splitlines())
 BARRIER_LINE = 10          # where test_barrier puts its ;@A9
 STEP = 0.5                 # simulated seconds per advance
 

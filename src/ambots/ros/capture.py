@@ -65,3 +65,177 @@ class HeadlessRviz:
                     p.wait(10)
                 except subprocess.TimeoutExpired:
                     p.kill()
+
+
+class PrintRecorder:
+    """Watches a live print: the deposit markers (for the bead mesh), every
+    arm's joint states (arm-arm clearance with the capsule model, at most
+    ``check_hz``), the firmware stats and the hub's progress.  :meth:`done`
+    says when every arm of the job is DONE (or one is in ERROR);
+    :meth:`write` writes the deposit mesh and ``report.json``."""
+
+    def __init__(self, cell, check_hz=50.0):
+        import json
+        import threading
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import String
+        from visualization_msgs.msg import MarkerArray
+
+        from ambots import topics
+        from ambots.collision import ArmBody
+        from ambots.rviz import DEPOSIT_TOPIC
+        self.cell = cell
+        self._json = json
+        self._lock = threading.RLock()
+        self.markers = {}                      #: (ns, id) -> latest Marker
+        self.stats = {}                        #: arm -> firmware stats dict
+        self.progress = {}
+        self.q = {}
+        self.bodies = {a.name: ArmBody.from_arm(a) for a in cell.arms}
+        self.min_clearance = float("inf")
+        self.contacts = 0
+        self.bed_contacts = self.part_contacts = 0
+        self.part_lo = self.part_hi = None       #: box around every bead seen so far (m)
+        self.checks = 0
+        self._last_check = 0.0
+        self._period = 1.0 / check_hz
+        self.started = time.time()
+        rospy.Subscriber(DEPOSIT_TOPIC, MarkerArray, self._on_markers, queue_size=100)
+        rospy.Subscriber(topics.PROGRESS_TOPIC, String, self._on_progress, queue_size=10)
+        for arm in cell.arms:
+            rospy.Subscriber(topics.joint_states_topic(arm.name), JointState, self._on_joints,
+                             callback_args=arm, queue_size=10)
+            rospy.Subscriber("/%s/firmware/stats" % arm.name, String, self._on_stats,
+                             callback_args=arm.name, queue_size=10)
+
+    def _on_markers(self, msg):
+        with self._lock:
+            for m in msg.markers:
+                if m.action == m.DELETEALL:
+                    self.markers.clear()
+                elif m.action == m.DELETE:
+                    self.markers.pop((m.ns, m.id), None)
+                else:
+                    self.markers[m.ns, m.id] = m
+                    if m.points:
+                        import numpy as np
+                        P = np.array([[p.x, p.y, p.z] for p in m.points])
+                        lo, hi = P.min(axis=0), P.max(axis=0)
+                        self.part_lo = lo if self.part_lo is None else np.minimum(self.part_lo, lo)
+                        self.part_hi = hi if self.part_hi is None else np.maximum(self.part_hi, hi)
+
+    def _on_progress(self, msg):
+        with self._lock:
+            self.progress = self._json.loads(msg.data).get("arms", {})
+
+    def _on_stats(self, msg, name):
+        with self._lock:
+            self.stats[name] = self._json.loads(msg.data)
+
+    def _on_joints(self, msg, arm):
+        import numpy as np
+        from ambots.collision import bed_clearance, clearance_between, part_clearance
+        names = [arm.prefix + j for j in arm.profile.joint_names]
+        try:
+            q = np.array([msg.position[list(msg.name).index(n)] for n in names])
+        except ValueError:
+            return
+        with self._lock:
+            self.q[arm.name] = q
+            now = time.time()
+            if now - self._last_check < self._period or len(self.q) < 2:
+                return
+            self._last_check = now
+            for n, q in self.q.items():
+                self.bed_contacts += float(bed_clearance(self.bodies[n], q[None], self.cell)[0]) < 0.0
+                if self.part_lo is not None:
+                    lo = np.array([self.part_lo[0], self.part_lo[1], self.cell.bed.pose[2, 3]])
+                    self.part_contacts += float(part_clearance(self.bodies[n], q[None], lo,
+                                                               self.part_hi)[0]) < 0.0
+            arms = list(self.q)
+            for i, a in enumerate(arms):
+                for b in arms[i + 1:]:
+                    c = float(clearance_between(self.bodies[a], self.q[a][None], self.bodies[b],
+                                                self.q[b][None])[0])
+                    self.checks += 1
+                    self.min_clearance = min(self.min_clearance, c)
+                    self.contacts += c < 0.0
+
+    def done(self, arms=None):
+        """(finished, failed): every arm of ``arms`` (default: the cell's) is
+        DONE / some arm is in ERROR."""
+        names = arms or [a.name for a in self.cell.arms]
+        with self._lock:
+            states = [self.progress.get(n, {}).get("state") for n in names]
+        return all(s == "DONE" for s in states), any(s == "ERROR" for s in states)
+
+    def deposit(self):
+        """The beads seen in the markers, as a :class:`~ambots.deposit.Deposit`
+        (LINE_LIST point pairs; width = the marker's line width, height = one
+        layer)."""
+        import numpy as np
+        from ambots.deposit import Deposit
+        from ambots.slicer import SliceSettings
+        h = SliceSettings().layer_height_mm * 1e-3
+        dep = Deposit()
+        with self._lock:
+            by_arm = {}
+            for (ns, _), m in sorted(self.markers.items()):
+                if m.type != m.LINE_LIST or len(m.points) < 2:
+                    continue
+                P = np.array([[p.x, p.y, p.z] for p in m.points])
+                by_arm.setdefault(ns, []).append((P[0::2], P[1::2], m.scale.x))
+        for ns, chunks in by_arm.items():
+            p0 = np.concatenate([c[0] for c in chunks])
+            p1 = np.concatenate([c[1] for c in chunks])
+            w = np.concatenate([np.full(len(c[0]), c[2]) for c in chunks])
+            keep = np.linalg.norm(p1 - p0, axis=1) > 0
+            dep.add(ns, p0[keep], p1[keep], w[keep] * h, h)
+        return dep
+
+    def write(self, out_dir, model=None, mode=None, slicer=None, model_volume_mm3=None):
+        """Write ``deposit.ply`` and ``report.json`` into ``out_dir``; returns the report."""
+        import os
+        os.makedirs(out_dir, exist_ok=True)
+        dep = self.deposit()
+        colours = {a.name: a.profile.colour for a in self.cell.arms}
+        if len(dep):
+            dep.export(os.path.join(out_dir, "deposit.ply"), colours=colours, scale=1000.0)
+        with self._lock:
+            arms = {}
+            for a in self.cell.arms:
+                s = self.stats.get(a.name, {})
+                p = self.progress.get(a.name, {})
+                arms[a.name] = {
+                    "id": a.id, "state": s.get("state", p.get("state")),
+                    "moves": s.get("moves"), "extrude_mm": _mm(s.get("extrude_m")),
+                    "travel_mm": _mm(s.get("travel_m")), "print_time_s": s.get("print_time_s"),
+                    "idle_time_s": s.get("idle_time_s"), "ik_failures": s.get("ik_failures"),
+                    "max_path_error_mm": s.get("max_path_error_mm"),
+                    "beads": len(dep.segments(a.name).starts) if a.name in dep.arms else 0,
+                    "error": p.get("error")}
+            starts = [s.get("first_motion_s") for s in self.stats.values() if s.get("first_motion_s") is not None]
+            ends = [s.get("done_s") for s in self.stats.values() if s.get("done_s") is not None]
+            report = {
+                "model": model, "cell": self.cell.name, "mode": mode, "slicer": slicer,
+                "finished": self.done()[0], "arms": arms,
+                "makespan_s": round(max(ends) - min(starts), 3) if starts and ends else None,
+                "collisions": {"arm_arm": int(self.contacts), "arm_bed": int(self.bed_contacts),
+                               "arm_part": int(self.part_contacts)},
+                "collision_checks": self.checks,
+                "min_clearance_mm": round(self.min_clearance * 1000.0, 2) if self.checks else None,
+                "deposit_volume_mm3": round(dep.volume_mm3(), 1) if len(dep) else 0.0,
+                "model_volume_mm3": model_volume_mm3,
+                "deposit_mesh": "deposit.ply",
+                "wall_time_s": round(time.time() - self.started, 3),
+                "note": "live run: contacts are checked on the joint states as published (sampled at up "
+                        "to 50 Hz); `python -m ambots plan` checks the whole executed trajectory",
+            }
+        import json
+        with open(os.path.join(out_dir, "report.json"), "w") as f:
+            json.dump(report, f, indent=2)
+        return report
+
+
+def _mm(v):
+    return None if v is None else round(float(v) * 1000.0, 3)
