@@ -129,8 +129,11 @@ class PrintRecorder:
             self.progress = self._json.loads(msg.data).get("arms", {})
 
     def _on_stats(self, msg, name):
+        data = self._json.loads(msg.data)
+        flat = dict(data.get("stats", {}))          # the runner's RunStats, plus the node's state
+        flat["state"] = data.get("state")
         with self._lock:
-            self.stats[name] = self._json.loads(msg.data)
+            self.stats[name] = flat
 
     def _on_joints(self, msg, arm):
         import numpy as np
@@ -197,6 +200,12 @@ class PrintRecorder:
         """Write ``deposit.ply`` and ``report.json`` into ``out_dir``; returns the report."""
         import os
         os.makedirs(out_dir, exist_ok=True)
+        if model_volume_mm3 is None and model:
+            try:
+                from ambots.mesh import load_model
+                model_volume_mm3 = round(float(load_model(model).volume), 1)
+            except Exception as exc:          # the report is still written without it
+                rospy.logwarn("model volume of %s: %s", model, exc)
         dep = self.deposit()
         colours = {a.name: a.profile.colour for a in self.cell.arms}
         if len(dep):
