@@ -12,9 +12,11 @@ import numpy as np
 def test_demo_prints_with_both_arms_concurrently_without_collision(tmp_path):
     env = dict(os.environ, ROS_HOME=str(tmp_path / "ros_home"))
     out = tmp_path / "demo"
-    r = subprocess.run(["roslaunch", "ambots", "demo.launch", "out:=%s" % out], capture_output=True,
-                       text=True, timeout=900, env=env)
-    assert r.returncode == 0, (r.stdout + r.stderr)[-4000:]
+    log = tmp_path / "demo.log"
+    with open(log, "w") as f:      # a file, not a pipe (see test_rostests.py)
+        r = subprocess.run(["roslaunch", "ambots", "demo.launch", "out:=%s" % out], stdout=f,
+                           stderr=subprocess.STDOUT, text=True, timeout=900, env=env)
+    assert r.returncode == 0 and (out / "report.json").exists(), log.read_text()[-6000:]
     report = json.loads((out / "report.json").read_text())
     assert report["finished"] is True, report
     assert report["collisions"] == {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}

@@ -18,6 +18,10 @@ def test_there_are_rostest_suites():
 @pytest.mark.parametrize("suite", SUITES)
 def test_rostest(suite, tmp_path):
     env = dict(os.environ, ROS_HOME=str(tmp_path / "ros_home"))
-    r = subprocess.run(["rostest", "ambots", suite], capture_output=True, text=True, timeout=600, env=env)
-    out = r.stdout + r.stderr
+    # output to a file, not a pipe: a stray grandchild holding a pipe open must not hang the test
+    log = tmp_path / "rostest.log"
+    with open(log, "w") as f:
+        r = subprocess.run(["rostest", "ambots", suite], stdout=f, stderr=subprocess.STDOUT, text=True,
+                           timeout=600, env=env)
+    out = log.read_text()
     assert r.returncode == 0 and "RESULT: SUCCESS" in out, out[-6000:]
