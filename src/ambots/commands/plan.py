@@ -10,16 +10,10 @@ def register(sub):
                                    "barriers) on a simulated clock, check the executed motion for "
                                    "collisions and write DIR/report.json, DIR/deposit.ply and the per-arm "
                                    "programs.")
-    p.add_argument("model", help="model file, millimetres")
-    p.add_argument("--cell", help="cell YAML (default: config/cells/kinova_ur10.yaml)")
-    p.add_argument("--arms", help="comma-separated subset of the cell's arms, e.g. ur10")
-    p.add_argument("--slicer", choices=("builtin", "prusa"), default="builtin")
-    p.add_argument("--mode", choices=("concurrent", "sequential"), default="concurrent")
-    p.add_argument("--seam", choices=("straight", "overlap"), default="straight")
-    p.add_argument("--scale", type=float, default=1.0, help="scale factor applied to the model")
+    from ambots.commands.slice import add_job_arguments
+    add_job_arguments(p, "out/plan")
     p.add_argument("--slow", action="append", default=[], metavar="ARM=FACTOR",
                    help="make an arm run FACTOR times slower than planned (e.g. ur10=1.3)")
-    p.add_argument("--out", default="out/plan", help="output folder (default: out/plan)")
     p.set_defaults(func=run)
 
 

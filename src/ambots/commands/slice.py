@@ -6,6 +6,12 @@ def register(sub):
                        description="Read a model (STL, OBJ, PLY, 3MF; mm), centre it on the bed, split it "
                                    "among the cell's arms, slice every part and coordinate the per-arm "
                                    "programs. Writes DIR/<arm>.gcode, DIR/<arm>.stl and DIR/job.json.")
+    add_job_arguments(p, "out/slice")
+    p.set_defaults(func=run)
+
+
+def add_job_arguments(p, out):
+    """The options of a job (shared by ``slice`` and ``plan``)."""
     p.add_argument("model", help="model file, millimetres")
     p.add_argument("--cell", help="cell YAML (default: config/cells/kinova_ur10.yaml)")
     p.add_argument("--arms", help="comma-separated subset of the cell's arms, e.g. ur10")
@@ -13,8 +19,7 @@ def register(sub):
     p.add_argument("--mode", choices=("concurrent", "sequential"), default="concurrent")
     p.add_argument("--seam", choices=("straight", "overlap"), default="straight")
     p.add_argument("--scale", type=float, default=1.0, help="scale factor applied to the model")
-    p.add_argument("--out", default="out/slice", help="output folder (default: out/slice)")
-    p.set_defaults(func=run)
+    p.add_argument("--out", default=out, help="output folder (default: %s)" % out)
 
 
 def run(args):
