@@ -350,7 +350,6 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent):
                 steps[a.name, layer, _phase_of(b, colour[a.name], layer, k)] = (
                     b, [s for s, bb in zip(segs, band) if bb == b])
     writers, step_end, approach_end, slots = {}, {}, {}, {}
-    n_wait = len(arms) - 1
     for a in arms:
         w_ = _Writer()
         for line in _header(a, "concurrent", ["; seam zone %.1f mm, %d band(s) of %.1f mm per layer, colour %d"
@@ -429,7 +428,6 @@ def _zone_phases(arms, parts, read, park, n_layers, zone_mm, colour):
     """More than two colours: each layer has one phase per colour; in phase
     p the arms of colour p print their seam-zone moves while the others
     print their moves away from every seam."""
-    names = [a.name for a in arms]
     zone, far = {}, {}
     for part in parts:
         name = part.arm.name

@@ -30,7 +30,7 @@ of time-stamped joint waypoints, steps a real controller could follow:
 Units: metres, radians and seconds inside; mm only where G-code is read
 (:mod:`ambots.units`).  World frame = the cell's; bed frame = G-code frame.
 """
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import List, Optional
 
 import numpy as np

@@ -39,7 +39,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ambots.errors import GCodeError
-from ambots.motion import Directive, Moves, MotionPlanner, Pause as Dwell, read_program, FILAMENT_AREA_MM2
+from ambots.motion import Directive, MotionPlanner, Pause as Dwell, read_program, FILAMENT_AREA_MM2
 from ambots.protocol import (Ack, ArmState, ClearChunk, ErrorReport, LoadChunk, MoveTo, Pause, Resume,
                              SendPosition, Start, Status, WaitFor, MAX_TEXT)
 from ambots.units import MM
@@ -227,7 +227,6 @@ class ArmRunner:
         elif kind is WaitFor:
             if self.state in (ArmState.PRINTING, ArmState.IDLE):
                 self.wait = msg
-                self._resume_state = self.state
                 self.state = ArmState.WAITING
                 self._report()
 

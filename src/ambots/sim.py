@@ -19,7 +19,7 @@ from typing import Dict, List
 
 import numpy as np
 
-from ambots.protocol import ArmState, ErrorReport, LoadChunk, MoveTo, Start, Status
+from ambots.protocol import ArmState, ErrorReport, LoadChunk, Start, Status
 from ambots.runner import ArmRunner
 from ambots.units import MM
 

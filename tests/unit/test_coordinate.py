@@ -1,7 +1,6 @@
 """Per-arm programs: sequential (the original) and concurrent (layers in
 lock-step, seam zones taken in turns), checked by executing them."""
 import random
-import re
 
 import manifold3d as m3
 import numpy as np
@@ -42,36 +41,6 @@ def extrusions(text):
     """Sorted (start, end, E) of the moves that lay filament (unretractions excluded)."""
     return sorted((s.start, s.end, round(s.e, 5)) for s in parse_gcode_text(text)
                   if type(s) is Segment and s.extrude and s.start != s.end)
-
-
-def run(programs, rng, zone_check=None):
-    """Execute the programs with random line durations; A9 blocks until the
-    other arm has completed line N.  Returns the finish order of content lines
-    as (time, arm, step) and checks that no two arms ever print different steps."""
-    ids = {p.arm.id: name for name, p in programs.items()}
-    lines = {n: p.lines for n, p in programs.items()}
-    done = {n: 0 for n in lines}         # completed lines
-    clock = {n: 0.0 for n in lines}
-    for _ in range(10 ** 6):
-        active = [n for n in lines if done[n] < len(lines[n])]
-        if not active:
-            return clock
-        progressed = False
-        for n in sorted(active, key=lambda n: clock[n]):
-            text = lines[n][done[n]]
-            if text.startswith(";@A9"):
-                cmd = decode(text[2:])
-                other = ids[cmd.other]
-                if done[other] < cmd.line:
-                    continue
-                clock[n] = max(clock[n], clock[other])
-            else:
-                clock[n] += rng.uniform(0.1, 3.0)
-            done[n] += 1
-            progressed = True
-            break
-        assert progressed, "deadlock: %s" % {n: lines[n][done[n]] for n in active}
-    raise AssertionError("did not finish")
 
 
 def totals(text):
