@@ -36,11 +36,7 @@ from ambots.gcode import Segment, parse_gcode_text
 from ambots.program import directive, sanitize_gcode
 from ambots.protocol import MoveTo, SendPosition, Start, WaitFor
 
-__all__ = ["ArmProgram", "build_programs", "park_positions_mm", "DEFAULT_ZONE_MM"]
-
-#: a seam-zone width (mm) for tests that want a fixed one; programs use the
-#: arms' geometry by default (:func:`seam_zone_for`)
-DEFAULT_ZONE_MM = 60.0
+__all__ = ["ArmProgram", "build_programs", "park_positions_mm", "seam_zone_for"]
 
 
 @dataclass
