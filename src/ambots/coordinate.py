@@ -71,10 +71,13 @@ class _Writer:
     """Emits canonical G-code for runs of segments, inserting a retracted
     travel wherever a run does not start where the nozzle is."""
 
-    def __init__(self, retract_mm=0.8, retract_feed=2100.0, travel_feed=9000.0):
+    def __init__(self, retract_mm=0.8, retract_feed=2100.0, travel_feed=9000.0, short_travel_mm=2.0):
         self.lines = []
         self.pos = None
         self.retract_mm, self.retract_feed, self.travel_feed = retract_mm, retract_feed, travel_feed
+        #: travels shorter than this within a layer are not retracted or lifted
+        #: (the slicers' ``retract_before_travel``)
+        self.short_travel_mm = short_travel_mm
 
     def emit(self, line):
         self.lines.append(line)
@@ -82,7 +85,10 @@ class _Writer:
     def travel_to(self, p, feed=None):
         if self.pos is not None and np.allclose(self.pos, p, atol=1e-6):
             return
-        if self.pos is not None:
+        if (self.pos is not None and abs(self.pos[2] - p[2]) < 1e-6
+                and np.hypot(self.pos[0] - p[0], self.pos[1] - p[1]) < self.short_travel_mm):
+            self.emit("G0 X%.3f Y%.3f F%.0f" % (p[0], p[1], feed or self.travel_feed))
+        elif self.pos is not None:
             self.emit("G1 E-%.5f F%.0f" % (self.retract_mm, self.retract_feed))
             lift = max(self.pos[2], p[2]) + 0.4        # clear what was just printed
             self.emit("G0 Z%.3f F%.0f" % (lift, feed or self.travel_feed))
@@ -267,6 +273,45 @@ def _split_at_bands(seg, planes, w, k):
     return out
 
 
+def _order_runs(segs, pos):
+    """Extrusion pieces of one step -> the same pieces in a short-travel order.
+
+    Travels and pure retractions are dropped (the writer makes its own);
+    extruding segments are grouped into runs (maximal chains that the
+    slicer printed end to start), and the runs are visited greedily, nearest
+    end first, a run reversed when its far end is nearer.  Deposit geometry
+    and E are unchanged; only the order and direction of runs differ.
+    ``pos``: the nozzle's position (mm) before the step, or None."""
+    runs = []
+    for s in segs:
+        if not s.extrude or s.start == s.end:
+            continue
+        if runs and runs[-1][-1].end == s.start:
+            runs[-1].append(s)
+        else:
+            runs.append([s])
+    if len(runs) < 2:
+        return [s for r in runs for s in r]
+    heads = np.array([r[0].start for r in runs], dtype=float)
+    tails = np.array([r[-1].end for r in runs], dtype=float)
+    left = np.ones(len(runs), dtype=bool)
+    here = np.asarray(pos if pos is not None else runs[0][0].start, dtype=float)
+    out = []
+    for _ in range(len(runs)):
+        dh = np.where(left, np.linalg.norm(heads - here, axis=1), np.inf)
+        dt = np.where(left, np.linalg.norm(tails - here, axis=1), np.inf)
+        i, j = int(np.argmin(dh)), int(np.argmin(dt))
+        if dt[j] < dh[i] - 1e-9:
+            left[j] = False
+            out.extend(s._replace(start=s.end, end=s.start) for s in reversed(runs[j]))
+            here = heads[j]
+        else:
+            left[i] = False
+            out.extend(runs[i])
+            here = tails[i]
+    return out
+
+
 def _band_of(segs, planes, w, k):
     """Band index (S,) of each segment from its midpoint's distance to the nearest seam."""
     if not planes:
@@ -355,6 +400,8 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent):
         for layer in range(n_layers):
             for p in range(k):
                 band, segs = steps[a.name, layer, p]
+                if planes[a.name]:      # cut pieces: drop slicer travels, shortest-travel order
+                    segs = _order_runs(segs, w_.pos)
                 if p == 0:
                     w_.emit(";LAYER_CHANGE")
                     zs = [s.end[2] for q in range(k) for s in steps[a.name, layer, q][1]]

@@ -175,3 +175,42 @@ def test_sequential_is_the_original_hand_over(cell, job):
     assert a_lines[-1] == Start(2)                                            # and start the UR10
     assert [type(decode(l[2:])) for l in ur10.lines if l.startswith(";@")] == [MoveTo]
     assert extrusions(ur10.text) == extrusions(sliced["ur10"].replace("A1 R2 ; must be stripped", ""))
+
+
+def _travel_mm(segs, pos):
+    total = 0.0
+    for s in segs:
+        total += float(np.linalg.norm(np.subtract(s.start, pos)))
+        pos = s.end
+    return total
+
+
+def test_run_order_keeps_every_bead_and_shortens_travel():
+    """Band pieces of perimeter loops: the slicer's order hops across the part
+    between the two sides of each loop; the greedy order visits each side's
+    pieces together, reversing runs where that is shorter."""
+    from ambots.coordinate import _order_runs
+    segs, line = [], 1
+    for i in range(3):                       # three loops cut to the band x in [20, 40]
+        y0, y1 = -20.0 + i, 20.0 - i
+        for a, b in (((20, y0, .2), (40, y0, .2)), ((40, y1, .2), (20, y1, .2))):
+            segs.append(Segment(a, b, 0.7, 1800.0, True, line, 0))
+            segs.append(Segment(b, b, -0.8, 2100.0, False, line + 1, 0))     # slicer's retraction
+            line += 2
+    ordered = _order_runs(segs, (20.0, -20.0, 0.2))
+    beads = lambda ss: sorted(tuple(sorted((s.start, s.end))) + (s.e,) for ss_ in [ss] for s in ss_
+                              if s.extrude and s.start != s.end)
+    assert beads(ordered) == beads(segs)
+    assert all(s.extrude for s in ordered)          # travels and retractions are the writer's job
+    assert _travel_mm(ordered, (20.0, -20.0, 0.2)) < 0.3 * _travel_mm(
+        [s for s in segs if s.extrude], (20.0, -20.0, 0.2))
+
+
+def test_short_travels_are_not_retracted():
+    from ambots.coordinate import _Writer
+    w = _Writer()
+    w.travel_to((0.0, 0.0, 0.2))
+    w.travel_to((0.5, 0.5, 0.2))            # 0.7 mm, same layer: a plain move
+    assert w.lines[-1].startswith("G0 X0.500 Y0.500") and len(w.lines) == 2
+    w.travel_to((10.0, 0.5, 0.2))           # longer: retract, lift, move, lower, unretract
+    assert w.lines[2].startswith("G1 E-0.8") and w.lines[-1].startswith("G1 E0.8") and len(w.lines) == 7
