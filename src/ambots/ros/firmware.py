@@ -199,6 +199,7 @@ class FirmwareNode:
         self.sender = Sender(arm.id, first_seq=seq_seed(time.time()), max_tries=max_tries)
         self.receiver = Receiver(arm.id)
         self._commands = queue.Queue()
+        self._wake = threading.Event()        # a command arrived: the loop need not finish its tick
         self.markers = DepositMarkers(arm.name, cell.world_frame, arm.profile.colour, bead_width_mm * MM,
                                       max_beads)
         self.sim_now = 0.0
@@ -257,6 +258,7 @@ class FirmwareNode:
             self._to_hub.publish(String(encode(delivery.ack)))
         if delivery.verdict is Verdict.NEW:
             self._commands.put(message)
+            self._wake.set()
         elif delivery.verdict is Verdict.STALE:
             rospy.logwarn("%s firmware: Q%d of node %d is older than the window: not executed",
                           self.arm.name, message.seq, message.sender or 0)
@@ -313,6 +315,7 @@ class FirmwareNode:
         last_state, last_status = None, None
         while not rospy.is_shutdown():
             wall = time.monotonic()
+            self._wake.clear()                # before the queue is drained: no command is missed
             try:
                 with self.lock:
                     out, q, peers_changed = self._step(wall - last)
@@ -360,8 +363,8 @@ class FirmwareNode:
                 last_state = state
             if self.speed is None and state is ArmState.PRINTING:
                 time.sleep(0.0005)            # let the callbacks run
-            else:
-                time.sleep(max(0.0, period - (time.monotonic() - wall)))
+            else:                             # until the next tick, or a command (a barrier's report)
+                self._wake.wait(max(0.0, period - (time.monotonic() - wall)))
 
     def _send(self, messages):
         for m in messages:
