@@ -31,3 +31,21 @@ KINOVA_EE = ((0, 0, -0.061525), (3.1416, 0, -3.1416))   # bracelet_link -> end_e
 KINOVA_JOINTS = ["joint_%d" % i for i in range(1, 7)]
 KINOVA_LIMITS = [None, (-2.24, 2.24), (-2.57, 2.57), None, (-2.09, 2.09), None]   # None: continuous
 KINOVA_MAX_SPEED = [1.3963, 1.3963, 1.3963, 1.2218, 1.2218, 1.2218]
+
+# Franka Emika Panda, 7 DOF: modified (Craig) DH, (a_(i-1), alpha_(i-1), d_i) per joint;
+# T(i-1, i) = RotX(alpha_(i-1)) TransX(a_(i-1)) RotZ(q_i) TransZ(d_i)
+PANDA_MDH = [
+    (0.0, 0.0, 0.333),
+    (0.0, -math.pi / 2, 0.0),
+    (0.0, math.pi / 2, 0.316),
+    (0.0825, math.pi / 2, 0.0),
+    (-0.0825, -math.pi / 2, 0.384),
+    (0.0, math.pi / 2, 0.0),
+    (0.088, math.pi / 2, 0.0),
+]
+PANDA_FLANGE = (0.0, 0.0, 0.107)   # (a, alpha, d) of the fixed flange row
+PANDA_JOINTS = ["panda_joint%d" % i for i in range(1, 8)]
+PANDA_LIMITS = [(-2.8973, 2.8973), (-1.7628, 1.7628), (-2.8973, 2.8973), (-3.0718, -0.0698),
+                (-2.8973, 2.8973), (-0.0175, 3.7525), (-2.8973, 2.8973)]
+PANDA_MAX_SPEED = [2.1750, 2.1750, 2.1750, 2.1750, 2.6100, 2.6100, 2.6100]
+PANDA_REACH = 0.855

@@ -8,7 +8,7 @@ from ambots.errors import KinematicsError, UnreachableError
 from ambots.kinematics import DOWN, ArmKinematics, chain_from_urdf, kdl_chain
 from ambots.model import arm_kinematics, arm_urdf
 
-ARMS = ["ur10", "kinova_gen3"]
+ARMS = ["ur10", "kinova_gen3", "panda"]
 
 
 @pytest.fixture(scope="module", params=ARMS)

@@ -102,7 +102,7 @@ def test_position_limits():
             assert (kin.lower[i], kin.upper[i]) == pytest.approx(lim, abs=1e-9)
 
 
-@pytest.mark.parametrize("name", ["ur10", "kinova_gen3"])
+@pytest.mark.parametrize("name", ["ur10", "kinova_gen3", "panda"])
 def test_nozzle_is_the_tool_offset_from_the_flange(name):
     prof = load_arm_profile("config/arms/%s.yaml" % name)
     urdf = arm_urdf(prof)
@@ -115,7 +115,8 @@ def test_nozzle_is_the_tool_offset_from_the_flange(name):
     assert prof.tool_xyz[2] == pytest.approx(0.10)
 
 
-@pytest.mark.parametrize("xacro_file, n_joints", [("ur10.xacro", 6), ("kinova_gen3_6dof.xacro", 6)])
+@pytest.mark.parametrize("xacro_file, n_joints", [("ur10.xacro", 6), ("kinova_gen3_6dof.xacro", 6),
+                                                    ("panda.xacro", 7)])
 def test_xacro_processed_alone_yields_one_arm_of_primitives(tmp_path, xacro_file, n_joints):
     xacro_bin = os.path.join(os.path.dirname(sys.executable), "xacro")
     out = subprocess.run([xacro_bin, data_path("urdf", xacro_file)], cwd=tmp_path,
