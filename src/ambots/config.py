@@ -103,14 +103,38 @@ class _Reader:
         return [_Reader(self.path, item, "%s[%d]" % (self._name(key), i)) for i, item in enumerate(v)]
 
 
+class _Loader(yaml.SafeLoader):
+    """The safe loader, refusing a key given twice in a mapping (plain YAML
+    keeps the last one silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                duplicate = key in seen
+            except TypeError:        # unhashable: construct_mapping says so
+                break
+            if duplicate:
+                raise yaml.constructor.ConstructorError(
+                    "while reading a mapping", node.start_mark, "duplicate key %r" % (key,),
+                    key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
 def _load_yaml(path, what):
     if not os.path.isfile(path):
         raise ConfigError(path, None, "%s file not found" % what)
     try:
-        with open(path) as f:
-            data = yaml.safe_load(f)
+        with open(path, encoding="utf-8") as f:
+            data = yaml.load(f, Loader=_Loader)
     except yaml.YAMLError as exc:
         raise ConfigError(path, None, "not valid YAML: %s" % exc) from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(path, None, "not UTF-8 text (byte %d): not a YAML file" % exc.start) from None
+    except OSError as exc:
+        raise ConfigError(path, None, "cannot read: %s" % (exc.strerror or exc)) from None
     return _Reader(path, data)
 
 
@@ -160,7 +184,11 @@ def load_arm_profile(path):
     r = _load_yaml(path, "arm profile")
     joints = []
     for j in r.items("joints"):
-        cont = bool(j.get("continuous", False))
+        cont = j.get("continuous", False)
+        if not isinstance(cont, bool):       # bool("no") would be True: an unlimited joint
+            raise ConfigError(path, j.prefix + ".continuous", "expected true or false, got %r" % (cont,))
+        if any(jl.name == j.data.get("name") for jl in joints):
+            raise ConfigError(path, j.prefix + ".name", "duplicate joint name %r" % j.data["name"])
         lower, upper = j.num("lower"), j.num("upper")
         if lower >= upper:
             raise ConfigError(path, j.prefix, "lower limit %g >= upper limit %g" % (lower, upper))
@@ -256,12 +284,17 @@ class Cell:
 
 
 _NAME_OK = set("abcdefghijklmnopqrstuvwxyz0123456789_")
+_MAX_ROBOT_ID = 2 ** 31 - 1      # ambots.protocol.MAX_ID: the R word's range
 
 
 def load_cell(path, min_base_distance=0.25):
     """Read and check a cell.  Arm bases closer than ``min_base_distance`` (m)
     are refused as overlapping."""
     path = resolve_path(path)
+    if isinstance(min_base_distance, bool) or not isinstance(min_base_distance, (int, float)) \
+            or not 0 <= min_base_distance < math.inf:
+        raise ConfigError(path, "min_base_distance", "must be a finite number >= 0 (m), got %r"
+                          % (min_base_distance,))
     r = _load_yaml(path, "cell")
     bed = r.sub("bed")
     size = bed.vec("size", 3)
@@ -278,8 +311,9 @@ def load_cell(path, min_base_distance=0.25):
         if name in names:
             raise ConfigError(path, a.prefix + ".name", "duplicate arm name %r" % name)
         rid = a.get("id")
-        if isinstance(rid, bool) or not isinstance(rid, int) or rid < 1:
-            raise ConfigError(path, a.prefix + ".id", "expected a positive integer, got %r" % (rid,))
+        if isinstance(rid, bool) or not isinstance(rid, int) or not 1 <= rid <= _MAX_ROBOT_ID:
+            raise ConfigError(path, a.prefix + ".id", "expected an integer 1..%d (an A-series robot "
+                              "id), got %r" % (_MAX_ROBOT_ID, rid))
         if rid in ids:
             raise ConfigError(path, a.prefix + ".id", "duplicate robot id %d" % rid)
         prof_path = resolve_path(a.str("profile"), path)

@@ -129,7 +129,10 @@ _COMMAND_RE = re.compile(r"([GMTA])(\d+)(\.\d+)?")
 _COMMAND_START_RE = re.compile(r"[ \t]*([A-Z])(\d+(?:\.\d+)?)")
 _LINE_NUMBER_RE = re.compile(r"[Nn][+-]?\d+")
 _Z_EPS = 1e-9
-_BLANKS = "".join(map(chr, range(33))) + "\x7f"     # whitespace and control characters
+# whitespace and control characters, with every Unicode space: str.strip()
+# (the reader's) removes those, so "\xa0A1 R2" is read as A1 and must count as one
+_BLANKS = "".join(map(chr, range(33))) + "\x7f" + "".join(
+    c for c in map(chr, range(0x80, 0x3001)) if c.isspace())
 _command_cache = {}
 
 
@@ -137,8 +140,8 @@ def is_a_series(code):
     """True if the G-code text ``code`` (comments already removed, any case)
     starts with an A-series command word ``A<digits>``, even glued to its
     parameters (``A1R2``) or after a line number (``N5 A1 R2``).  Leading
-    blanks and control characters are skipped (conservative: a firmware
-    might skip them too)."""
+    blanks, Unicode spaces and control characters are skipped (conservative:
+    a firmware might skip them too)."""
     s = code.lstrip(_BLANKS)
     if s[:1] in ("N", "n"):
         m = _LINE_NUMBER_RE.match(s)
@@ -325,11 +328,11 @@ def arc_points(start, end, centre, clockwise, tolerance):
     r0, r1 = math.hypot(x0 - cx, y0 - cy), math.hypot(x1 - cx, y1 - cy)
     a0 = math.atan2(y0 - cy, x0 - cx)
     if abs(x1 - x0) < 1e-9 and abs(y1 - y0) < 1e-9:
-        sweep = 2 * math.pi
+        sweep = -2 * math.pi if clockwise else 2 * math.pi    # full circle, either way round
     else:
         sweep = (math.atan2(y1 - cy, x1 - cx) - a0) % (2 * math.pi)
-    if clockwise:
-        sweep -= 2 * math.pi
+        if clockwise:
+            sweep -= 2 * math.pi
     r = max(r0, r1)
     step = 2 * math.acos(1 - tolerance / r) if tolerance < r else math.pi
     n = max(math.ceil(abs(sweep) / min(step, math.pi / 2) - 1e-9), 1)

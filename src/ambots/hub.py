@@ -247,7 +247,7 @@ class Hub:
         else:
             arm.record_error(report, now)
             posts = [Post(topics.ERROR_TOPIC, "%s error at G-code line %d: %s"
-                          % (src.label, report.line, report.message))]
+                          % (src.label, report.line, _printable(report.message)))]
             readers = [self.registry.front_end]
         return posts + [self._forward(report, e, now) for e in readers]
 
@@ -268,9 +268,25 @@ def _check_identity(msg, src):
 
 
 def _excerpt(text):
-    """``text`` quoted on one line, cut to about :data:`EXCERPT` characters."""
+    """``text`` (anything: a refused message need not be a str) quoted on one
+    line, cut to about :data:`EXCERPT` characters."""
+    if not isinstance(text, str):
+        return _cut(repr(text))
     return repr(text) if len(text) <= EXCERPT else repr(text[:EXCERPT]) + "..."
 
 
+def _cut(text, n=EXCERPT):
+    return text if len(text) <= n else text[:n] + "..."
+
+
+def _printable(text):
+    """``text`` on one line of printable characters (an A11 message may hold
+    newlines, control characters, even a lone surrogate that no UTF-8
+    publisher can send): the others are written as escapes."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def _refusal(text, caller, reason):
-    return Post(topics.ERROR_TOPIC, "hub refused %s from %s: %s" % (_excerpt(text), caller, reason))
+    # the reason quotes the offending word: cut it too (a 10 kB word stays a short line)
+    return Post(topics.ERROR_TOPIC, "hub refused %s from %s: %s"
+                % (_excerpt(text), caller, _cut(reason, 2 * EXCERPT)))

@@ -23,6 +23,7 @@ import numpy as np
 import trimesh
 
 from ambots.errors import MeshError
+from ambots.gcode import MAX_ABS_MM
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +79,7 @@ def load_model(path, scale=1.0, max_triangles=DEFAULT_MAX_TRIANGLES, repair=True
     if ext == "stl":
         _check_binary_stl_count(path, name, max_triangles)
     mesh = _read(path, name, ext)
-    check_numbers(mesh, name, max_triangles)
+    check_numbers(mesh, name, max_triangles, scale)
     if scale != 1.0:
         mesh.apply_scale(float(scale))
     mesh.metadata[SOURCE_KEY] = name
@@ -104,6 +105,8 @@ def _check_file(path, name):
         raise MeshError("%s: unknown model format %r; supported: %s" % (
             name, "." + ext if ext else "(no extension)",
             ", ".join("." + e for e in SUPPORTED_FORMATS)))
+    if os.path.isdir(path):
+        raise MeshError("%s: is a folder, not a model file" % path)
     if not os.path.isfile(path):
         raise MeshError("%s: no such file" % path)
     if os.path.getsize(path) == 0:
@@ -112,19 +115,31 @@ def _check_file(path, name):
 
 
 def _check_binary_stl_count(path, name, max_triangles):
-    """Refuse a binary STL announcing too many triangles before reading it.
+    """Refuse a binary STL announcing too many triangles, or more than the
+    file holds, before reading it (a forged count must not cost time or memory).
 
     A binary STL is an 80-byte header, a uint32 triangle count and 50 bytes
-    per triangle; a file whose size matches that layout is binary."""
+    per triangle; a file whose size matches that layout is binary.  A file
+    that does not match it and does not look like ASCII STL (``solid`` then
+    text) is refused: truncated, or not an STL file at all."""
     size = os.path.getsize(path)
     if size < 84:
         return
-    with open(path, "rb") as f:
-        f.seek(80)
-        (count,) = struct.unpack("<I", f.read(4))
-    if size == 84 + 50 * count and count > max_triangles:
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1024)
+    except OSError as exc:
+        raise MeshError("%s: cannot read: %s" % (name, exc.strerror or exc)) from None
+    (count,) = struct.unpack("<I", head[80:84])
+    binary = size == 84 + 50 * count
+    if binary and count > max_triangles:
         raise MeshError("%s: %s triangles, more than the limit of %s" % (
             name, format(count, ","), format(max_triangles, ",")))
+    if not binary and not (head.lstrip()[:5].lower() == b"solid" and b"\0" not in head):
+        raise MeshError("%s: not a readable STL file: not ASCII STL, and as binary STL its "
+                        "header announces %s triangles (%s bytes) but the file has %s bytes"
+                        % (name, format(count, ","), format(84 + 50 * count, ","),
+                           format(size, ",")))
 
 
 def _read(path, name, ext):
@@ -143,8 +158,10 @@ def _read(path, name, ext):
     return mesh
 
 
-def check_numbers(mesh, name, max_triangles=DEFAULT_MAX_TRIANGLES):
-    """Refuse too many triangles, non-finite vertices and bad indices."""
+def check_numbers(mesh, name, max_triangles=DEFAULT_MAX_TRIANGLES, scale=1.0):
+    """Refuse too many triangles, non-finite vertices, coordinates beyond
+    :data:`ambots.gcode.MAX_ABS_MM` once multiplied by ``scale`` (no G-code
+    could reach them; the geometry code would overflow) and bad indices."""
     n = len(mesh.faces)
     if n > max_triangles:
         raise MeshError("%s: %s triangles, more than the limit of %s" % (
@@ -153,6 +170,10 @@ def check_numbers(mesh, name, max_triangles=DEFAULT_MAX_TRIANGLES):
     if bad.any():
         raise MeshError("%s: %d vertices have NaN or infinite coordinates (first: vertex %d)"
                         % (name, bad.sum(), np.flatnonzero(bad)[0]))
+    bad = (np.abs(mesh.vertices) * scale > MAX_ABS_MM).any(axis=1)
+    if bad.any():
+        raise MeshError("%s: %d vertices lie beyond +-%g mm (first: vertex %d); wrong unit "
+                        "or broken file" % (name, bad.sum(), MAX_ABS_MM, np.flatnonzero(bad)[0]))
     if len(mesh.vertices) == 0 or mesh.faces.min() < 0 or mesh.faces.max() >= len(mesh.vertices):
         raise MeshError("%s: triangles refer to vertices that do not exist" % name)
 

@@ -236,6 +236,10 @@ class MotionPlanner:
         self.vmax = np.array([j.velocity for j in prof.joints]) * prof.velocity_scaling
         self.amax = np.array([j.acceleration for j in prof.joints]) * prof.velocity_scaling
         self.down = down_in_base(arm)
+        #: no nozzle position is farther from the base (m): a loose bound
+        #: (twice the published reach, plus the tool) used to cut a run of moves
+        #: at the first move that leaves it (see :meth:`_cartesian`)
+        self.max_reach = 2.0 * (prof.reach + float(np.linalg.norm(prof.tool_xyz)))
         T_bed = cell.bed.pose
         # bed mm -> base m in one affine map
         Tb = np.linalg.inv(arm.base_pose) @ T_bed
@@ -287,6 +291,13 @@ class MotionPlanner:
         return _concat([lead, body]) if lead is not None else body
 
     def _cartesian(self, segments, q0):
+        # a move ending out of reach fails anyway: drop the moves after it, so
+        # that absurd coordinates (+-1e6 mm) cost one move's samples, not GBs
+        # of samples for the whole run
+        E_base = self.bed_mm_to_base(np.array([s.end for s in segments], dtype=float))
+        far = np.linalg.norm(E_base, axis=1) > self.max_reach
+        if far.any():
+            segments = segments[:int(np.argmax(far)) + 1]
         n = len(segments)
         S = np.array([s.start for s in segments], dtype=float)
         E = np.array([s.end for s in segments], dtype=float)
