@@ -125,6 +125,7 @@ class ArmRunner:
         self.pause_requested = False
         self.after_block = None      #: state after a manual (A7) move
         self.reported_line = -1
+        self._ahead = {}             #: item index -> (start joints, block) planned ahead
 
     @property
     def percent(self):
@@ -337,7 +338,11 @@ class ArmRunner:
         if isinstance(item, Dwell):
             self.block = self.planner.dwell(self.q, item.seconds, item.line, self.layer_of_line[item.line])
         else:
-            self.block = self.planner.plan_moves(item.segments, self.q)
+            ahead = self._ahead.pop(self.idx - 1, None)
+            if ahead is not None and np.array_equal(ahead[0], self.q):
+                self.block = ahead[1]
+            else:
+                self.block = self.planner.plan_moves(item.segments, self.q)
             self.stats.moves += len(item.segments)
         b = self.block
         self.stats.plans[b.planned] = self.stats.plans.get(b.planned, 0) + 1
@@ -346,6 +351,34 @@ class ArmRunner:
         if self.stats.first_motion_s is None:
             self.stats.first_motion_s = self.clock
         return True
+
+    def prefetch(self, max_items=4):
+        """Plan one more of the next moves ahead of time (while the arm
+        waits at a barrier, or in spare time between ticks), so that the
+        plan is ready when the arm gets there.  Looks at most ``max_items``
+        items ahead and not past a barrier, a manual move or the end.
+        Returns True if it planned something (call again while there is
+        time), False if there is nothing more to plan ahead."""
+        if self.state not in (ArmState.PRINTING, ArmState.WAITING, ArmState.PAUSED):
+            return False
+        q = self.block.Q[-1] if self.block is not None else self.q
+        for i in range(self.idx, min(self.idx + max_items, len(self.items))):
+            item = self.items[i]
+            if isinstance(item, Directive):
+                msg = item.message
+                if getattr(msg, "robot", None) == self.id and isinstance(msg, (WaitFor, MoveTo)):
+                    return False
+                continue
+            if isinstance(item, Dwell):
+                continue
+            ahead = self._ahead.get(i)
+            if ahead is not None and np.array_equal(ahead[0], q):
+                q = ahead[1].Q[-1]
+                continue
+            block = self.planner.plan_moves(item.segments, q)
+            self._ahead[i] = (np.array(q, dtype=float), block)
+            return True
+        return False
 
     def _directive(self, item):
         msg = item.message

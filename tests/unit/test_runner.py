@@ -480,3 +480,39 @@ def test_an_arm_waiting_for_a_failed_arm_holds_and_says_why(cell):
     assert r.state is ArmState.PAUSED
     errors = [m for _, m in r.outbox if isinstance(m, ErrorReport)]
     assert errors and "R2" in errors[-1].message and errors[-1].line == 5
+
+
+def test_planning_ahead_while_waiting_gives_the_same_motion(arm, cell, planner):
+    """Moves planned ahead at a barrier (prefetch) are the ones executed:
+    the same beads as the reference run, and no move is planned twice."""
+    calls = []
+
+    class Counting:
+        def __init__(self, inner):
+            self.inner = inner
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+        def plan_moves(self, segments, q0):
+            calls.append(segments[0].line)
+            return self.inner.plan_moves(segments, q0)
+
+    r = ArmRunner(arm, cell, planner=Counting(planner), record=True)
+    load_and_start(r, with_barrier(40))
+    run(r, t_max=100.0)
+    assert r.state is ArmState.WAITING
+    n_before = len(calls)
+    while r.prefetch():
+        pass
+    assert len(calls) > n_before               # the moves after the barrier are planned now
+    r.handle(Status(2, ArmState.PRINTING, 0, 40, 41.0), now=r.clock)
+    r.advance(r.clock)
+    run(r)
+    assert r.state is ArmState.DONE
+    assert len(calls) == len(set(calls))       # ... and not again when the arm gets there
+    free = new_runner(arm, cell, planner)      # the same program, the barrier satisfied from the start
+    free.handle(Status(2, ArmState.PRINTING, 0, 40, 50.0), now=0.0)
+    load_and_start(free, with_barrier(40))
+    run(free)
+    same_beads(r, free)

@@ -363,8 +363,17 @@ class FirmwareNode:
                 last_state = state
             if self.speed is None and state is ArmState.PRINTING:
                 time.sleep(0.0005)            # let the callbacks run
-            else:                             # until the next tick, or a command (a barrier's report)
-                self._wake.wait(max(0.0, period - (time.monotonic() - wall)))
+            else:
+                # spare time until the next tick: plan the next moves ahead (one
+                # item at a time), then sleep until the tick or a command (a
+                # barrier's report) arrives
+                tick_end = wall + period
+                while not self._wake.is_set() and time.monotonic() < tick_end - 0.002:
+                    with self.lock:
+                        if not self.runner.prefetch():
+                            break
+                    time.sleep(0)             # let the callbacks run
+                self._wake.wait(max(0.0, tick_end - time.monotonic()))
 
     def _send(self, messages):
         for m in messages:
