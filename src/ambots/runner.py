@@ -33,7 +33,7 @@ Pause (A2) stops at the end of the G-code line being executed (a clean
 point: never in the middle of a bead) and A6 resumes from there, so a
 paused print deposits exactly what an uninterrupted one does.
 """
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Dict, List, Optional
 
 import numpy as np
@@ -41,7 +41,7 @@ import numpy as np
 from ambots.errors import GCodeError
 from ambots.motion import Directive, MotionPlanner, Pause as Dwell, read_program, FILAMENT_AREA_MM2
 from ambots.protocol import (Ack, ArmState, ClearChunk, ErrorReport, LoadChunk, MoveTo, Pause, Resume,
-                             SendPosition, Start, Status, WaitFor, MAX_TEXT)
+                             SendPosition, Start, Status, WaitFor, MAX_TEXT, decode, encode)
 from ambots.units import MM
 
 __all__ = ["ArmRunner", "Bead", "RunStats"]
@@ -126,6 +126,7 @@ class ArmRunner:
         self.after_block = None      #: state after a manual (A7) move
         self.reported_line = -1
         self._ahead = {}             #: item index -> (start joints, block) planned ahead
+        self._block_src = None       #: where the current block came from (for checkpoints)
 
     @property
     def percent(self):
@@ -268,8 +269,78 @@ class ArmRunner:
             self._error(0, "A7 X%g Y%g Z%g: %s" % (msg.x, msg.y, msg.z, block.error.message))
             return
         self.after_block = self.state
+        self._block_src = ["manual", float(msg.x), float(msg.y), float(msg.z)]
         self.block, self.block_t0, self.k = block, now, 0
         self.state = ArmState.PRINTING
+
+    # ----------------------------------------------------------- checkpoints
+    def checkpoint(self):
+        """Everything needed to resume this run after a crash, as a
+        JSON-able dict (the chunk's text is not in it: the caller keeps it).
+        Progress is recorded to the waypoint: the current block's source
+        (program item or manual move), the line it is executing and whether
+        that line is complete; :meth:`restore` re-plans the rest of that
+        item from the joints ``q`` the arm had reached."""
+        cur = None
+        b = self.block
+        if b is not None and self._block_src is not None:
+            k = self.k
+            cur = {"src": list(self._block_src), "line": int(b.line[k]) if k > 0 else None,
+                   "line_done": bool(b.line_end[k]) if k > 0 else False, "t": float(b.t[k]),
+                   "after": self.after_block.name if self.after_block is not None else None}
+        return {
+            "chunk": list(self.chunk) if self.chunk is not None else None,
+            "state": self.state.name, "clock": self.clock, "idx": self.idx, "q": self.q.tolist(),
+            "done_line": int(self.done_line), "layer": int(self.layer),
+            "wait": encode(self.wait) if self.wait is not None else None,
+            "pause_requested": self.pause_requested, "reported_line": int(self.reported_line),
+            "peers": {str(i): encode(st) for i, st in self.peers.items() if st is not None},
+            "peer_time": {str(i): t for i, t in self.peer_time.items()},
+            "stats": asdict(self.stats), "block": cur,
+        }
+
+    def restore(self, cp, text):
+        """Resume from :meth:`checkpoint` ``cp`` with the chunk's G-code
+        ``text``.  The block in progress is re-planned from the joints
+        reached: a line cut short continues from the nozzle's position to
+        its end (its filament in proportion), so no bead is laid twice and
+        none is missing."""
+        items, n_lines, layer_of_line = read_program(text, "chunk %s" % (cp["chunk"] or ["?"])[0])
+        self._clear()
+        self.chunk = tuple(cp["chunk"]) if cp["chunk"] is not None else None
+        self.items, self.n_lines, self.layer_of_line = items, n_lines, layer_of_line
+        self.state = ArmState[cp["state"]]
+        self.clock, self.idx = float(cp["clock"]), int(cp["idx"])
+        self.q = np.array(cp["q"], dtype=float)
+        self.done_line, self.layer = int(cp["done_line"]), int(cp["layer"])
+        self.wait = decode(cp["wait"]) if cp["wait"] else None
+        self.pause_requested, self.reported_line = bool(cp["pause_requested"]), int(cp["reported_line"])
+        self.peers = {int(i): decode(t) for i, t in cp["peers"].items()}
+        self.peer_time = {int(i): float(t) for i, t in cp["peer_time"].items()}
+        self.stats = RunStats(**cp["stats"])
+        cur = cp["block"]
+        if cur is None:
+            return
+        src = cur["src"]
+        if src[0] == "manual":
+            target = self.planner.bed_mm_to_base(np.array([src[1:4]], dtype=float))[0]
+            self.block = self.planner.joint_move_to(target, self.q, line=self.done_line, layer=self.layer)
+            self.after_block = ArmState[cur["after"]] if cur["after"] else None
+        else:
+            item = self.items[int(src[1])]
+            if isinstance(item, Dwell):
+                self.block = self.planner.dwell(self.q, max(0.0, item.seconds - cur["t"]), item.line,
+                                                self.layer_of_line[item.line])
+            elif isinstance(item, Directive):          # a MoveTo of the program
+                msg = item.message
+                target = self.planner.bed_mm_to_base(np.array([[msg.x, msg.y, msg.z]]))[0]
+                self.block = self.planner.joint_move_to(target, self.q, line=item.line,
+                                                        layer=self.layer_of_line[item.line])
+            else:
+                rest = _remaining(item.segments, cur["line"], cur["line_done"], self.nozzle_mm())
+                self.block = self.planner.plan_moves(rest, self.q) if rest else None
+        self._block_src = list(src)
+        self.block_t0, self.k = self.clock, 0
 
     # ----------------------------------------------------------- time
     def _wait_satisfied(self):
@@ -335,6 +406,7 @@ class ArmRunner:
                 self._report()        # what the other arms' barriers wait for
             self._directive(item)
             return False
+        self._block_src = ["item", self.idx - 1]
         if isinstance(item, Dwell):
             self.block = self.planner.dwell(self.q, item.seconds, item.line, self.layer_of_line[item.line])
         else:
@@ -397,6 +469,7 @@ class ArmRunner:
             return
         if target == self.id and isinstance(msg, MoveTo):
             target_base = self.planner.bed_mm_to_base(np.array([[msg.x, msg.y, msg.z]]))[0]
+            self._block_src = ["item", self.idx - 1]
             self.block = self.planner.joint_move_to(target_base, self.q, line=item.line,
                                                     layer=self.layer_of_line[item.line])
             self.block_t0, self.k = self.clock, 0
@@ -475,3 +548,33 @@ class ArmRunner:
         if self.after_block is not None:        # a manual A7 move
             self.state, self.after_block = self.after_block, None
             self._report(with_position=True)
+
+
+def _remaining(segments, line, line_done, nozzle_mm):
+    """The segments of a Moves item still to execute when the nozzle is at
+    ``nozzle_mm`` (bed frame, mm) in line ``line`` (None: nothing done yet),
+    complete or not: the rest of a cut line starts at the nozzle, with the
+    remaining share of its filament."""
+    if line is None:
+        return list(segments)
+    idx = [i for i, s in enumerate(segments) if s.line == line]
+    if not idx:
+        return list(segments)
+    if line_done:
+        return list(segments[idx[-1] + 1:])
+    p = np.asarray(nozzle_mm, dtype=float)
+
+    def dist(s):
+        a, b = np.asarray(s.start, dtype=float), np.asarray(s.end, dtype=float)
+        ab = b - a
+        u = 0.0 if not ab.any() else float(np.clip((p - a) @ ab / (ab @ ab), 0.0, 1.0))
+        return float(np.linalg.norm(a + u * ab - p)), u
+
+    j = min(idx, key=lambda i: dist(segments[i])[0])
+    (off, u), s = dist(segments[j]), segments[j]
+    if off > 0.5:                 # not on the line yet (a joint move leading to it): all of it
+        return list(segments[j:])
+    head = []
+    if u < 1.0 - 1e-9:
+        head = [s._replace(start=tuple(float(v) for v in p), e=s.e * (1.0 - u))]
+    return head + list(segments[j + 1:])

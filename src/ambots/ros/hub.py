@@ -1,13 +1,22 @@
 """ROS side of the communication hub: one subscriber on ``topics.HUB_TOPIC``
 feeding :class:`ambots.hub.Hub` with each message's caller id, publishers
 for every post it returns, a timer for retransmissions and a timer that
-republishes the progress (latched) even without news."""
+republishes the progress (latched) even without news.
+
+Fault injection (tests, ``make faults``): with a :class:`ambots.faults.FaultSpec`
+that is active, everything the hub receives passes through one
+:class:`~ambots.faults.FaultyChannel` and everything it publishes on the
+arms' and the front end's inboxes through another (progress and error
+topics are not faulted); a fast timer releases what is due.  The counts
+are in the progress JSON under ``"faults"``."""
+import json
 import threading
 
 import rospy
 from std_msgs.msg import String
 
 from ambots import topics
+from ambots.faults import FaultSpec, FaultyChannel
 
 
 class HubNode:
@@ -16,37 +25,73 @@ class HubNode:
     progress is republished.  rospy calls back from several threads, so
     every call into the hub holds one lock."""
 
-    def __init__(self, hub, retry_period=0.05, progress_period=1.0):
+    def __init__(self, hub, retry_period=0.05, progress_period=1.0, faults=FaultSpec()):
         self.hub = hub
         self.retry_period, self.progress_period = retry_period, progress_period
         self._lock = threading.Lock()
         self._pubs = {}
+        self.faults = faults if faults.active else None
+        if self.faults:
+            self._in = FaultyChannel(faults, stream=1)
+            self._out = FaultyChannel(faults, stream=2)
+        self.retries = 0
 
     def start(self):
         """Advertise, subscribe and start the timers."""
         for topic in self.hub.registry.inboxes + [topics.ERROR_TOPIC]:
-            self._pubs[topic] = rospy.Publisher(topic, String, queue_size=100)
+            self._pubs[topic] = rospy.Publisher(topic, String, queue_size=1000)
         self._pubs[topics.PROGRESS_TOPIC] = rospy.Publisher(topics.PROGRESS_TOPIC, String,
                                                             queue_size=1, latch=True)
         rospy.Subscriber(topics.HUB_TOPIC, String, self._on_message, queue_size=1000)
         rospy.Timer(rospy.Duration(self.retry_period), self._on_retry_timer)
         rospy.Timer(rospy.Duration(self.progress_period), self._on_progress_timer)
+        if self.faults:
+            rospy.logwarn("communication hub: injecting faults %s", self.faults)
+            rospy.Timer(rospy.Duration(0.002), self._on_fault_timer)
 
     def _on_message(self, msg):
+        caller = msg._connection_header["callerid"]
         with self._lock:
-            self._publish(self.hub.handle(msg.data, msg._connection_header["callerid"],
-                                          rospy.get_time()))
+            if self.faults:
+                self._in.push((msg.data, caller), rospy.get_time())
+                return
+            self._publish(self.hub.handle(msg.data, caller, rospy.get_time()))
+
+    def _on_fault_timer(self, _event):
+        with self._lock:
+            now = rospy.get_time()
+            for text, caller in self._in.pop_due(now):
+                self._publish(self.hub.handle(text, caller, now))
+            for post in self._out.pop_due(now):
+                self._pubs[post.topic].publish(String(post.text))
 
     def _on_retry_timer(self, _event):
         with self._lock:
-            self._publish(self.hub.tick(rospy.get_time()))
+            posts = self.hub.tick(rospy.get_time())
+            self.retries += sum(1 for p in posts if p.topic != topics.ERROR_TOPIC)
+            self._publish(posts)
 
     def _on_progress_timer(self, _event):
         with self._lock:
-            self._pubs[topics.PROGRESS_TOPIC].publish(String(self.hub.progress_json(rospy.get_time())))
+            self._pubs[topics.PROGRESS_TOPIC].publish(String(self.progress_json()))
+
+    def progress_json(self):
+        """The hub's progress JSON plus its delivery counts (lock held)."""
+        doc = json.loads(self.hub.progress_json(rospy.get_time()))
+        doc["hub"] = {"retries": self.retries}
+        if self.faults:
+            doc["faults"] = {"spec": str(self.faults), "in": self._in.counts.as_dict(),
+                             "out": self._out.counts.as_dict()}
+        return json.dumps(doc)
 
     def _publish(self, posts):
+        now = rospy.get_time()
         for post in posts:
             if post.topic == topics.ERROR_TOPIC:
                 rospy.logwarn(post.text)
-            self._pubs[post.topic].publish(String(post.text))
+            if post.topic == topics.PROGRESS_TOPIC:
+                self._pubs[post.topic].publish(String(self.progress_json()))
+            elif self.faults and post.topic != topics.ERROR_TOPIC:
+                self._out.push(post, now)
+            else:
+                self._pubs[post.topic].publish(String(post.text))
