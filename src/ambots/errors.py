@@ -46,3 +46,9 @@ class KinematicsError(AmbotsError):
 
 class UnreachableError(KinematicsError):
     """No joint configuration within limits reaches the requested nozzle pose."""
+
+
+class ExportError(AmbotsError):
+    """A planned job cannot be exported (``python -m ambots export``): a
+    missing or inconsistent plan folder, an unknown format, an arm the
+    format does not support, a plan that does not run to the end."""

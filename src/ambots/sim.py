@@ -47,22 +47,26 @@ class SimResult:
         return (max(ends) - min(starts)) if starts else 0.0
 
 
-def simulate(programs, cell, dt=2.0, max_time=10 * 24 * 3600.0, planner_kw=None, slow=None):
+def simulate(programs, cell, dt=2.0, max_time=10 * 24 * 3600.0, planner_kw=None, slow=None,
+             planner_cls=None, runner_cls=None):
     """Run the programs of a job to completion.
 
     ``programs``: {arm name: :class:`~ambots.coordinate.ArmProgram`};
     ``dt``: the simulated step (s) between message exchanges (the runners
     keep exact time inside a step and wake exactly when a report arrives);
     ``slow``: optional {arm name: factor} stretching an arm's motion (a
-    firmware that runs slower than planned).  Returns :class:`SimResult`."""
+    firmware that runs slower than planned); ``planner_cls``/``runner_cls``:
+    subclasses of :class:`~ambots.motion.MotionPlanner` /
+    :class:`~ambots.runner.ArmRunner` to use instead (e.g. ones that record
+    more, see :mod:`ambots.export`).  Returns :class:`SimResult`."""
     from ambots.motion import MotionPlanner
     t_wall = time.perf_counter()
     runners = {}
     for name, prog in programs.items():
-        planner = MotionPlanner(prog.arm, cell, **(planner_kw or {}))
+        planner = (planner_cls or MotionPlanner)(prog.arm, cell, **(planner_kw or {}))
         if slow and name in slow:
             planner.time_scale = float(slow[name])
-        runners[name] = ArmRunner(prog.arm, cell, planner=planner, record=True)
+        runners[name] = (runner_cls or ArmRunner)(prog.arm, cell, planner=planner, record=True)
     by_id = {r.id: r for r in runners.values()}
     result = SimResult(runners)
 
