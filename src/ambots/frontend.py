@@ -210,6 +210,7 @@ class JobTracker:
         self.programs = {p.arm.id: p for p in programs.values()}
         self.state = {i: None for i in self.programs}
         self.shown = {}              # arm id -> (state, percent // 10) last printed
+        self.clocks = {}             # arm id -> clock (M) of its latest report
         self.outcome = None
         self.awaiting_report = False
 
@@ -234,6 +235,10 @@ class JobTracker:
             return []
         if not isinstance(msg, Status) or program is None:
             return []
+        if msg.clock is not None:            # reordered delivery: an older report is stale
+            if msg.clock < self.clocks.get(msg.robot, -1.0):
+                return []
+            self.clocks[msg.robot] = msg.clock
         self.state[msg.robot] = msg.state
         key = (msg.state, int(msg.percent // 10))
         lines = []

@@ -126,12 +126,18 @@ class ArmProgress:
     position: Optional[Tuple[float, float, float]] = None
     updated: Optional[float] = None
     error: Optional[dict] = None
+    clock: Optional[float] = None           #: the arm's clock (M) at its last report
     _eta_at_update: Optional[float] = field(default=None, init=False, repr=False)
     #: (time, percent) the rate is measured from
     _anchor: Optional[Tuple[float, float]] = field(default=None, init=False, repr=False)
 
     def update(self, status, now):
-        """Take in the A10 ``status`` received at ``now``."""
+        """Take in the A10 ``status`` received at ``now`` (one older, by the
+        arm's clock M, than the last is a late copy: ignored)."""
+        if status.clock is not None and self.clock is not None and status.clock < self.clock:
+            return
+        if status.clock is not None:
+            self.clock = status.clock
         if self.percent is None or status.percent < self.percent or status.state == ArmState.IDLE:
             self._anchor = (now, status.percent)
         self.state, self.layer, self.line = status.state, status.layer, status.line

@@ -41,10 +41,12 @@ A7    R X Y Z                          move arm R to (X, Y, Z), mm
 A8    R Q                              acknowledge message Q of node R
 A9    R W (L | N)                      arm R waits until arm W reports (A10) layer
                                        >= L, or line >= N, or state DONE
-A10   R T L N P [X Y Z]                status of arm R: state T (:class:`ArmState`),
+A10   R T L N P [X Y Z] [M]            status of arm R: state T (:class:`ArmState`),
                                        current layer L (0-based), last completed
                                        G-code line N (0 = none), percent done P,
-                                       position X Y Z (mm, all three or none)
+                                       position X Y Z (mm, all three or none), M the
+                                       arm's (simulated) clock in s when it made
+                                       the report (barriers release at that time)
 A11   R N "text"                       arm R reports an error at G-code line N
                                        (0 = not tied to a line); text <= 512 chars
 ====  ===============================  ==============================================
@@ -60,7 +62,7 @@ retried.
 
 Ranges: robot ids (R except in A8, W) are 1..2**31-1; node ids (S, and R in
 A8) are 0..2**31-1 where 0 (:data:`HUB`) is the hub; Q, C, K 0..2**32-1;
-L, N 0..2**31-1; X Y Z |v| <= 1e6 mm; P 0..100.
+L, N 0..2**31-1; X Y Z |v| <= 1e6 mm; P 0..100; M 0..1e9 s.
 """
 import json
 import re
@@ -152,6 +154,7 @@ _U32 = _Int(0, MAX_U32, "an integer 0..%d" % MAX_U32)
 _COUNT = _Int(0, MAX_ID, "an integer 0..%d" % MAX_ID)
 _MM = _Num(-MAX_ABS_MM, MAX_ABS_MM, "a coordinate within +-%g mm" % MAX_ABS_MM)
 _PERCENT = _Num(0.0, 100.0, "a percentage 0..100")
+_CLOCK = _Num(0.0, 1e9, "a time 0..1e9 s")
 _STATE = _State(0, max(ArmState), "an arm state 0..%d" % max(ArmState))
 _HEADER = (("S", "sender", _NODE), ("Q", "seq", _U32))
 
@@ -327,13 +330,14 @@ class Status(_Message):
     x: Optional[float] = None
     y: Optional[float] = None
     z: Optional[float] = None
+    clock: Optional[float] = None
     sender: Optional[int] = None
     seq: Optional[int] = None
     CODE: ClassVar[int] = 10
     WORDS: ClassVar[Tuple] = (("R", "robot", _ROBOT), ("T", "state", _STATE),
                               ("L", "layer", _COUNT), ("N", "line", _COUNT),
                               ("P", "percent", _PERCENT), ("X", "x", _MM), ("Y", "y", _MM),
-                              ("Z", "z", _MM)) + _HEADER
+                              ("Z", "z", _MM), ("M", "clock", _CLOCK)) + _HEADER
 
     def _check(self):
         if len({self.x is None, self.y is None, self.z is None}) != 1:

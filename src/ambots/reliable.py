@@ -117,6 +117,23 @@ class Sender:
         del self._pending[ack.acked_seq]
         return out
 
+    def snapshot(self):
+        """JSON-able state: the next number and the unacknowledged messages
+        (as text), so that a restarted node goes on where it stopped."""
+        from ambots.protocol import encode
+        return {"next": self._next_seq,
+                "pending": [[encode(o.message), o.destination, o.tries] for o in self._pending.values()]}
+
+    def restore(self, snap, now):
+        """Undo a restart: continue numbering after ``snap``'s and send its
+        unacknowledged messages again (due at once, same numbers)."""
+        from ambots.protocol import decode
+        self._next_seq = int(snap["next"]) % SEQ_MODULUS
+        self._pending = {}
+        for text, dest, tries in snap["pending"]:
+            msg = decode(text)
+            self._pending[msg.seq] = Outgoing(msg, int(dest), int(tries), self.initial_timeout, now)
+
     def due(self, now, on_give_up=None):
         """The messages to transmit again at ``now`` (their tries, timeout
         and due time already advanced).  A message whose last try has timed
@@ -187,6 +204,19 @@ class Receiver:
         if sender is None:
             sender = HUB if message.sender is None else message.sender
         return Delivery(self._admit(sender, seq), Ack(sender, seq, self.node_id))
+
+    def snapshot(self):
+        """JSON-able state: per sender the highest number and the bit mask of
+        the numbers seen (hex), so that a restarted node still recognises
+        what it executed before."""
+        return {str(k): [w.top, "%x" % w.seen] for k, w in self._windows.items()}
+
+    def restore(self, snap):
+        self._windows = {}
+        for k, (top, seen) in snap.items():
+            w = _Window(int(top))
+            w.seen = int(seen, 16)
+            self._windows[int(k)] = w
 
     def _admit(self, sender, seq):
         w = self._windows.get(sender)

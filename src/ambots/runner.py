@@ -33,6 +33,7 @@ Pause (A2) stops at the end of the G-code line being executed (a clean
 point: never in the middle of a bead) and A6 resumes from there, so a
 paused print deposits exactly what an uninterrupted one does.
 """
+from collections import deque
 from dataclasses import asdict, dataclass, field
 from typing import Dict, List, Optional
 
@@ -104,6 +105,7 @@ class ArmRunner:
         self.stats = RunStats()
         self.peers: Dict[int, Status] = {}
         self.peer_time: Dict[int, float] = {}
+        self.peer_log: Dict[int, deque] = {}     #: recent reports per arm: (done, line, layer, clock)
         self.record = record
         self.trace_t: List[np.ndarray] = []
         self.trace_q: List[np.ndarray] = []
@@ -153,7 +155,7 @@ class ArmRunner:
         if with_position:
             x, y, z = (round(float(v), 3) for v in self.nozzle_mm())
         return Status(self.id, self.state, int(self.layer), int(self.done_line),
-                      round(float(self.percent), 2), x, y, z)
+                      round(float(self.percent), 2), x, y, z, clock=round(float(self.clock), 6))
 
     def _report(self, with_position=False):
         self.outbox.append((self.clock, self.status(with_position)))
@@ -170,8 +172,16 @@ class ArmRunner:
         now = self.clock if now is None else now
         if isinstance(msg, Status):
             if msg.robot != self.id:
+                last = self.peers.get(msg.robot)
+                if last is not None and last.clock is not None and msg.clock is not None \
+                        and msg.clock < last.clock:
+                    return                    # an older report overtaken by a newer one: stale
                 self.peers[msg.robot] = msg
-                self.peer_time[msg.robot] = now
+                self.peer_time[msg.robot] = msg.clock if msg.clock is not None else now
+                log = self.peer_log.setdefault(msg.robot, deque(maxlen=256))
+                if log and msg.line < log[-1][1]:
+                    log.clear()               # the other arm began a new run
+                log.append((msg.state is ArmState.DONE, msg.line, msg.layer, self.peer_time[msg.robot]))
                 if msg.state is ArmState.ERROR and self.state is ArmState.WAITING \
                         and self.wait is not None and self.wait.other == msg.robot:
                     # the arm this one waits for failed: hold here (A6 resumes the wait)
@@ -296,6 +306,7 @@ class ArmRunner:
             "pause_requested": self.pause_requested, "reported_line": int(self.reported_line),
             "peers": {str(i): encode(st) for i, st in self.peers.items() if st is not None},
             "peer_time": {str(i): t for i, t in self.peer_time.items()},
+            "peer_log": {str(i): [list(e) for e in log] for i, log in self.peer_log.items()},
             "stats": asdict(self.stats), "block": cur,
         }
 
@@ -317,6 +328,8 @@ class ArmRunner:
         self.pause_requested, self.reported_line = bool(cp["pause_requested"]), int(cp["reported_line"])
         self.peers = {int(i): decode(t) for i, t in cp["peers"].items()}
         self.peer_time = {int(i): float(t) for i, t in cp["peer_time"].items()}
+        self.peer_log = {int(i): deque([tuple(e) for e in log], maxlen=256)
+                         for i, log in cp.get("peer_log", {}).items()}
         self.stats = RunStats(**cp["stats"])
         cur = cp["block"]
         if cur is None:
@@ -359,8 +372,11 @@ class ArmRunner:
         (waits, pauses, finishes or fails)."""
         while True:
             if self.state is ArmState.WAITING:
-                if self.wait is not None and self._wait_satisfied():
-                    wake = max(self.clock, min(now, self.peer_time.get(self.wait.other, self.clock)))
+                wake = self.release_time()
+                if wake is not None:
+                    if wake > now:           # released later: by the other arm's clock it is not there yet
+                        self._idle_until(now)
+                        return
                     self._idle_until(wake)
                     self.wait = None
                     self.state = ArmState.PRINTING
@@ -376,6 +392,20 @@ class ArmRunner:
                 continue
             if not self._run_block(now):
                 return
+
+    def release_time(self):
+        """When the barrier being waited on releases this arm (simulated s):
+        the other arm's clock when it reported the awaited line, never before
+        this arm's own clock; None while the wait is not satisfied."""
+        if self.state is not ArmState.WAITING or self.wait is None or not self._wait_satisfied():
+            return None
+        w = self.wait
+        t = self.peer_time.get(w.other, self.clock)
+        for done, line, layer, clock in self.peer_log.get(w.other, ()):    # the first report that satisfied it
+            if done or (line >= w.line if w.line is not None else layer >= w.layer):
+                t = clock
+                break
+        return max(self.clock, t)
 
     def _idle_until(self, now):
         if now > self.clock:
@@ -397,13 +427,12 @@ class ArmRunner:
             self._report(with_position=True)
             return False
         item = self.items[self.idx]
-        prev = self.items[self.idx - 1] if self.idx else None
         self.idx += 1
         if isinstance(item, Directive):
             self.done_line = max(self.done_line, item.line - 1)
-            if isinstance(item.message, WaitFor) and not isinstance(prev, Directive) \
-                    and self.reported_line != self.done_line:
-                self._report()        # what the other arms' barriers wait for
+            if isinstance(item.message, WaitFor) and self.reported_line != self.done_line:
+                self._report()        # what the other arms' barriers wait for (also a line before
+                #                       a chain of barriers: another arm may wait for exactly it)
             self._directive(item)
             return False
         self._block_src = ["item", self.idx - 1]

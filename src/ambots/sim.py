@@ -143,13 +143,20 @@ def check_motion(result, cell, step_s=0.1, home=None):
     Returns a dict: ``collisions`` {arm_arm, arm_bed, arm_part: samples in
     contact}, ``min_clearance_mm`` (closest approach of two arms),
     ``min_bed_clearance_mm``, ``min_part_clearance_mm``, ``samples``."""
-    from ambots.collision import ArmBody, bed_clearance, clearance_between, part_clearance
     runners = result.runners
-    names = list(runners)
-    traces = {n: _trace(runners[n]) for n in names}
+    return check_traces({n: _trace(r) for n, r in runners.items()}, {n: r.arm for n, r in runners.items()},
+                        cell, beads=[b for r in runners.values() for b in r.beads], step_s=step_s)
+
+
+def check_traces(traces, arms, cell, beads=None, step_s=0.1):
+    """:func:`check_motion` for recorded traces: ``traces`` {name: (t (K,)
+    simulated s, Q (K, n) rad)}, ``arms`` {name: arm}, ``beads`` (with
+    times) for the arm-part check (None: not checked)."""
+    from ambots.collision import ArmBody, bed_clearance, clearance_between, part_clearance
+    names = list(traces)
     t_end = max(float(tr[0][-1]) for tr in traces.values())
     grid = np.arange(0.0, t_end + step_s, step_s)
-    bodies = {n: ArmBody.from_arm(runners[n].arm) for n in names}
+    bodies = {n: ArmBody.from_arm(arms[n]) for n in names}
     Qs = {n: _resample(traces[n][0], traces[n][1], grid) for n in names}
     out = {"collisions": {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}, "samples": int(len(grid)),
            "min_clearance_mm": None, "min_bed_clearance_mm": None, "min_part_clearance_mm": None,
@@ -174,7 +181,6 @@ def check_motion(result, cell, step_s=0.1, home=None):
         bed_min = min(bed_min, float(c.min()))
     out["min_bed_clearance_mm"] = bed_min / MM
     # arm-part: the box of what was deposited by each sample time
-    beads = [b for r in runners.values() for b in r.beads]
     if beads:
         P = np.concatenate([np.concatenate([b.p0, b.p1]) for b in beads])
         T = np.concatenate([np.concatenate([b.t, b.t]) for b in beads])

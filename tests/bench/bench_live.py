@@ -39,8 +39,9 @@ def main():
     done = max(s["stats"]["done_s"] for s in stats["final"].values())
     wall = stats["t_done"] - stats["t_printing"]
     for name, s in sorted(stats["final"].items()):
-        print("live %-7s %s: %6.0f s printing, %6.0f s idle (simulated)"
-              % (name, s["state"], s["stats"]["print_time_s"], s["stats"]["idle_time_s"]))
+        print("live %-7s %s: %6.0f s printing, %6.0f s idle (simulated); firmware process CPU %.1f s "
+              "(whole life)" % (name, s["state"], s["stats"]["print_time_s"], s["stats"]["idle_time_s"],
+                                stats["cpu"].get(name, float("nan"))))
     print("live speed:=max, demo model, both arms: makespan %.0f s simulated in %.1f s wall "
           "-> %.0f simulated s per wall s (goal >= 200)" % (done - first, wall, (done - first) / wall))
 
@@ -48,7 +49,7 @@ def main():
 def _watch_print(env, pkg, tmp):
     """Start the front end's print job and follow the arms' stats until every arm is done."""
     code = r"""
-import json, sys, time, rospy
+import json, os, sys, time, rospy
 from std_msgs.msg import String
 from ambots.config import default_cell_path, load_cell
 cell = load_cell(default_cell_path())
@@ -67,7 +68,17 @@ while time.monotonic() < deadline and not rospy.is_shutdown():
     if len(last) == len(cell.arms) and all(s["state"] in ("DONE", "ERROR") for s in last.values()) \
             and t_printing[0] is not None:
         t_done = time.monotonic()
-        print(json.dumps({"final": last, "t_printing": t_printing[0], "t_done": t_done}), flush=True)
+        cpu = {}
+        for pid in os.listdir("/proc"):
+            try:
+                cmd = open("/proc/%s/cmdline" % pid, "rb").read().split(b"\0")
+                stat = open("/proc/%s/stat" % pid).read().rsplit(")", 1)[1].split()
+            except (OSError, IndexError):
+                continue
+            name = [c.decode() for c in cmd if c.startswith(b"__log:=")]
+            if name and b"__name:=firmware" in cmd:
+                cpu[os.path.basename(name[0]).split("-firmware")[0]] = (int(stat[11]) + int(stat[12])) / os.sysconf("SC_CLK_TCK")
+        print(json.dumps({"final": last, "t_printing": t_printing[0], "t_done": t_done, "cpu": cpu}), flush=True)
         break
     time.sleep(0.005)
 """

@@ -188,3 +188,21 @@ def test_exactly_once_over_a_lossy_reordering_channel():
         now += 0.1
         in_flight = [o.message for o in sender.due(now)]
     assert sorted(executed) == list(range(200))
+
+
+def test_receiver_and_sender_survive_a_restart_through_their_snapshots():
+    import json
+    from ambots.protocol import Start, Resume
+    from ambots.reliable import Receiver, Sender, Verdict
+    rx = Receiver(2)
+    tx = Sender(0, first_seq=100)
+    msgs = [tx.send(Start(2), 2, 0.0).message, tx.send(Resume(2), 2, 0.0).message]
+    assert rx.receive(msgs[0]).verdict is Verdict.NEW
+    rx2, tx2 = Receiver(2), Sender(0, first_seq=5)
+    rx2.restore(json.loads(json.dumps(rx.snapshot())))
+    tx2.restore(json.loads(json.dumps(tx.snapshot())), now=1.0)
+    assert rx2.receive(msgs[0]).verdict is Verdict.DUPLICATE      # executed before the restart
+    assert rx2.receive(msgs[1]).verdict is Verdict.NEW
+    assert [o.message for o in tx2.pending] == msgs                  # still to be acknowledged
+    assert [o.message for o in tx2.due(1.0)] == msgs                 # sent again at once
+    assert tx2.send(Start(2), 2, 1.0).message.seq == 102             # numbering goes on

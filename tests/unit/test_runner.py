@@ -555,3 +555,18 @@ def test_checkpoint_restore_continues_without_gap_or_repeat(arm, cell, planner, 
     p0, p1, ln = concat(beads, "p0"), concat(beads, "p1"), concat(beads, "line")
     same = ln[1:] == ln[:-1]
     assert np.abs(p0[1:][same] - p1[:-1][same]).max() < 1e-6
+
+
+def test_a_report_overtaken_by_a_newer_one_is_ignored(arm, cell, planner):
+    """Reordered delivery: the older A10 (earlier clock) arriving last must
+    not take the other arm's progress back (a barrier it satisfied would
+    close again)."""
+    r = new_runner(arm, cell, planner)
+    load_and_start(r, with_barrier(40))
+    run(r, t_max=100.0)
+    assert r.state is ArmState.WAITING
+    r.handle(Status(2, ArmState.PRINTING, 0, 41, 50.0, clock=30.0), now=r.clock)
+    r.handle(Status(2, ArmState.PRINTING, 0, 12, 10.0, clock=5.0), now=r.clock)     # late, older
+    assert r.peers[2].line == 41
+    r.advance(r.clock + 40.0)
+    assert r.state is not ArmState.WAITING

@@ -78,7 +78,7 @@ class PrintRecorder:
         import json
         import threading
         from sensor_msgs.msg import JointState
-        from std_msgs.msg import String
+        from std_msgs.msg import Float64MultiArray, String
         from visualization_msgs.msg import MarkerArray
 
         from ambots import topics
@@ -100,6 +100,8 @@ class PrintRecorder:
         self._last_check = 0.0
         self._period = 1.0 / check_hz
         self.started = time.time()
+        self.traces = {}          #: arm -> [(K, 1 + n) rows of (simulated t, joints)] as executed
+        self.bead_times = {}      #: arm -> [(K, 7) rows of (p0, p1, simulated t)]
         rospy.Subscriber(DEPOSIT_TOPIC, MarkerArray, self._on_markers, queue_size=100)
         rospy.Subscriber(topics.PROGRESS_TOPIC, String, self._on_progress, queue_size=10)
         for arm in cell.arms:
@@ -107,6 +109,10 @@ class PrintRecorder:
                              callback_args=arm, queue_size=10)
             rospy.Subscriber("/%s/firmware/stats" % arm.name, String, self._on_stats,
                              callback_args=arm.name, queue_size=10)
+            rospy.Subscriber("/%s/firmware/trace" % arm.name, Float64MultiArray, self._on_rows,
+                             callback_args=(self.traces, arm.name), queue_size=1000)
+            rospy.Subscriber("/%s/firmware/beads" % arm.name, Float64MultiArray, self._on_rows,
+                             callback_args=(self.bead_times, arm.name), queue_size=1000)
 
     def _on_markers(self, msg):
         with self._lock:
@@ -123,6 +129,39 @@ class PrintRecorder:
                         lo, hi = P.min(axis=0), P.max(axis=0)
                         self.part_lo = lo if self.part_lo is None else np.minimum(self.part_lo, lo)
                         self.part_hi = hi if self.part_hi is None else np.maximum(self.part_hi, hi)
+
+    def _on_rows(self, msg, where):
+        from ambots.ros.firmware import rows_of
+        store, name = where
+        rows = rows_of(msg)
+        with self._lock:
+            store.setdefault(name, []).append(rows)
+
+    def check_executed(self):
+        """Arm-arm, arm-bed and arm-part contacts of the executed motion in
+        simulated time (:func:`ambots.sim.check_traces` on the firmware
+        traces), or None without traces.  At speed max the arms' clocks are
+        not the wall clock, so the joint states as they arrive pair poses of
+        different moments; the traces do not."""
+        import numpy as np
+        from types import SimpleNamespace
+        from ambots.sim import check_traces
+        with self._lock:
+            traces = {n: np.concatenate(v) for n, v in self.traces.items() if v}
+            beads = {n: np.concatenate(v) for n, v in self.bead_times.items() if v}
+        if not traces:
+            return None
+        out = {}
+        for n, rows in traces.items():
+            # a restarted firmware repeats what it had not checkpointed: keep the later copy
+            t = rows[:, 0]
+            keep = np.ones(len(t), dtype=bool)
+            keep[:-1] = t[:-1] < np.minimum.accumulate(t[::-1])[::-1][1:]
+            rows = rows[keep]
+            out[n] = (rows[:, 0], rows[:, 1:])
+        arms = {a.name: a for a in self.cell.arms if a.name in out}
+        bead_list = [SimpleNamespace(p0=b[:, 0:3], p1=b[:, 3:6], t=b[:, 6]) for b in beads.values()]
+        return check_traces(out, arms, self.cell, beads=bead_list)
 
     def _on_progress(self, msg):
         with self._lock:
@@ -223,27 +262,41 @@ class PrintRecorder:
                     "max_path_error_mm": s.get("max_path_error_mm"),
                     "beads": len(dep.segments(a.name).starts) if a.name in dep.arms else 0,
                     "error": p.get("error")}
+            live = {"arm_arm": int(self.contacts), "arm_bed": int(self.bed_contacts),
+                    "arm_part": int(self.part_contacts)}
+            live_min = round(self.min_clearance * 1000.0, 2) if self.checks else None
             starts = [s.get("first_motion_s") for s in self.stats.values() if s.get("first_motion_s") is not None]
             ends = [s.get("done_s") for s in self.stats.values() if s.get("done_s") is not None]
             report = {
                 "model": model, "cell": self.cell.name, "mode": mode, "slicer": slicer,
                 "finished": self.done()[0], "arms": arms,
                 "makespan_s": round(max(ends) - min(starts), 3) if starts and ends else None,
-                "collisions": {"arm_arm": int(self.contacts), "arm_bed": int(self.bed_contacts),
-                               "arm_part": int(self.part_contacts)},
-                "collision_checks": self.checks,
-                "min_clearance_mm": round(self.min_clearance * 1000.0, 2) if self.checks else None,
+                "collisions": live, "collision_checks": self.checks, "min_clearance_mm": live_min,
                 "deposit_volume_mm3": round(dep.volume_mm3(), 1) if len(dep) else 0.0,
                 "model_volume_mm3": model_volume_mm3,
                 "deposit_mesh": "deposit.ply",
                 "wall_time_s": round(time.time() - self.started, 3),
-                "note": "live run: contacts are checked on the joint states as published (sampled at up "
-                        "to 50 Hz); `python -m ambots plan` checks the whole executed trajectory",
             }
+        executed = self.check_executed()
+        if executed is not None:
+            report["collisions"] = executed["collisions"]
+            report["collision_checks"] = executed["samples"]
+            report["min_clearance_mm"] = _round(executed["min_clearance_mm"])
+            report["min_bed_clearance_mm"] = _round(executed["min_bed_clearance_mm"])
+            report["min_part_clearance_mm"] = _round(executed["min_part_clearance_mm"])
+            report["note"] = ("contacts: the executed trajectories the firmware nodes published, sampled "
+                              "every 0.1 s of simulated time; live_*: the joint states as they arrived")
+        else:
+            report["note"] = "contacts: the joint states as they arrived (no firmware traces)"
+        report["live_collisions"], report["live_min_clearance_mm"] = live, live_min
         import json
         with open(os.path.join(out_dir, "report.json"), "w") as f:
             json.dump(report, f, indent=2)
         return report
+
+
+def _round(v):
+    return None if v is None else round(float(v), 2)
 
 
 def _mm(v):

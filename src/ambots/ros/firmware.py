@@ -49,16 +49,18 @@ import numpy as np
 import rospy
 from geometry_msgs.msg import Point
 from sensor_msgs.msg import JointState
-from std_msgs.msg import String
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ambots import topics
+from ambots.checkpoint import StateStore
 from ambots.collision import ArmBody, bed_clearance, clearance_between
 from ambots.errors import ProtocolError
 from ambots.motion import MotionPlanner
-from ambots.protocol import HUB, Ack, ArmState, ClearChunk, LoadChunk, Start, Status, decode, encode
+from ambots.protocol import (HUB, Ack, ArmState, ClearChunk, LoadChunk, SendPosition, Start, Status, decode,
+                             encode)
 from ambots.reliable import Receiver, Sender, Verdict, seq_seed
-from ambots.runner import ArmRunner, RunStats
+from ambots.runner import ArmRunner, Bead, RunStats
 from ambots.rviz import DEPOSIT_TOPIC
 from ambots.units import MM
 
@@ -187,13 +189,14 @@ class FirmwareNode:
 
     def __init__(self, arm, cell, speed=1.0, rate=50.0, max_step=2.0, report_period=1.0,
                  marker_rate=4.0, bead_width_mm=0.45, clearance_mm=5.0, max_beads=2000,
-                 retry_period=0.05, max_tries=None):
+                 retry_period=0.05, max_tries=None, state_dir=None, run_id="", slowdown=1.0):
         self.arm, self.cell = arm, cell
         self.speed, self.rate, self.max_step = speed, float(rate), float(max_step)
         self.report_period, self.marker_period = report_period, 1.0 / marker_rate
         self.retry_period = retry_period
         self.collision = CollisionCheck(arm, cell, clearance_mm * MM)
-        self.runner = ArmRunner(arm, cell, planner=MotionPlanner(arm, cell, is_valid=self.collision))
+        self.runner = ArmRunner(arm, cell, planner=MotionPlanner(arm, cell, is_valid=self.collision),
+                                record=True)
         self.lock = threading.Lock()          # the runner, the markers, the sim clock
         self._io = threading.Lock()           # sender and receiver
         self.sender = Sender(arm.id, first_seq=seq_seed(time.time()), max_tries=max_tries)
@@ -203,9 +206,17 @@ class FirmwareNode:
         self.markers = DepositMarkers(arm.name, cell.world_frame, arm.profile.colour, bead_width_mm * MM,
                                       max_beads)
         self.sim_now = 0.0
+        self.slowdown = float(slowdown)       # > 1: this arm's motion takes that much longer (fault tests)
+        if self.slowdown != 1.0:
+            self.runner.planner.time_scale = self.slowdown
+        self.store = StateStore(state_dir, arm.name) if state_dir else None
+        self.checkpoint_period = 0.1          # wall s between checkpoints while printing (at least)
+        self.run_id = run_id
+        self.resumed = None                   # the checkpoint this node resumed from
         self.peers = {}                       # robot id -> last A10 state name
         self._names = {a.id: a.name for a in cell.arms}
         self._thread = None
+        self._traced = (None, None)
 
     # ------------------------------------------------------------- ROS
     def start(self):
@@ -218,6 +229,8 @@ class FirmwareNode:
         self._deposit = rospy.Publisher(DEPOSIT_TOPIC, MarkerArray, queue_size=100,
                                         subscriber_listener=_NewSubscriber(self))
         self._stats = rospy.Publisher("~stats", String, queue_size=10, latch=True)
+        self._trace = rospy.Publisher("~trace", Float64MultiArray, queue_size=1000)
+        self._bead_times = rospy.Publisher("~beads", Float64MultiArray, queue_size=1000)
         self._js = JointState(name=[arm.prefix + j for j in arm.profile.joint_names])
         for other in self.cell.arms:
             if other.name != arm.name:
@@ -226,6 +239,8 @@ class FirmwareNode:
         rospy.Subscriber(topics.arm_topic(arm.name), String, self._on_inbox, queue_size=1000)
         with self.lock:
             self._outgoing = [self.runner.status(with_position=True)]   # here I am
+            if self.store is not None:
+                self._resume_from_checkpoint()
         self._thread = threading.Thread(target=self._loop, name="firmware-%s" % arm.name, daemon=True)
         self._thread.start()
 
@@ -252,29 +267,34 @@ class FirmwareNode:
             with self._io:
                 self.sender.acknowledge(message)
             return
+        # deduplicated, executed and checkpointed by the loop before it is acknowledged
+        self._commands.put((message, msg.data))
+        self._wake.set()
+
+    def _receive(self, message, data):
+        """One numbered command from the inbox (loop thread, lock held):
+        returns the A8 to send once the step is checkpointed (or None)."""
         with self._io:
             delivery = self.receiver.receive(message)
-        if delivery.ack is not None:
-            self._to_hub.publish(String(encode(delivery.ack)))
         if delivery.verdict is Verdict.NEW:
-            self._commands.put(message)
-            self._wake.set()
+            self._apply(message)
         elif delivery.verdict is Verdict.STALE:
             rospy.logwarn("%s firmware: Q%d of node %d is older than the window: not executed",
                           self.arm.name, message.seq, message.sender or 0)
         elif delivery.verdict is Verdict.UNNUMBERED:
             rospy.logwarn("%s firmware: ignored unnumbered %r (everything comes numbered through the hub)",
-                          self.arm.name, msg.data[:80])
+                          self.arm.name, data[:80])
+        return delivery.ack
 
     # ------------------------------------------------------------- the loop
     def _apply(self, message):
         """Hand one command to the runner (lock held)."""
         r = self.runner
         if isinstance(message, (LoadChunk, ClearChunk)):
-            self.markers.new_run()
+            self._new_run()
         elif isinstance(message, Start) and message.robot == self.arm.id and r.items \
                 and r.state in (ArmState.IDLE, ArmState.DONE):
-            self.markers.new_run()            # a new run: new markers, its own statistics
+            self._new_run()                   # a new run: new markers, its own statistics
             r.stats = RunStats()
         if isinstance(message, Status) and message.robot != self.arm.id:
             name = message.state.name
@@ -285,40 +305,61 @@ class FirmwareNode:
                     rospy.logwarn("%s firmware: arm %s (R%d) stopped with an error", self.arm.name,
                                   self._names.get(message.robot, "?"), message.robot)
         r.handle(message, now=self.sim_now)
+        if isinstance(message, LoadChunk) and self.store is not None and r.chunk == message.identity:
+            self.store.save_chunk(message.identity, message.gcode)
 
     def _step(self, dt):
         """One iteration (lock held): commands, the clock, what to publish."""
         r = self.runner
         self._peers_changed = False
+        acks = []
         while True:
             try:
-                self._apply(self._commands.get_nowait())
+                ack = self._receive(*self._commands.get_nowait())
             except queue.Empty:
                 break
-        if self.speed is None and r.state is ArmState.PRINTING:
-            r.advance(max(self.sim_now, r.clock) + self.max_step)
+            if ack is not None:
+                acks.append(ack)
+        release = r.release_time()
+        if self.speed is None and (r.state is ArmState.PRINTING or release is not None):
+            # as fast as possible: the arm's clock runs ahead of the wall; a
+            # barrier releases it at the other arm's clock when it reported
+            r.advance(max(self.sim_now, r.clock, release or 0.0) + self.max_step)
             self.sim_now = max(self.sim_now, r.clock)
+        elif self.speed is None and r.state is ArmState.WAITING:
+            pass                              # its clock stays where the wait began
         else:
             self.sim_now += (self.speed or 1.0) * dt
             r.advance(self.sim_now)
         out = [m for _, m in r.outbox]
         r.outbox.clear()
+        trace = beads = None
+        if r.trace_t:             # the executed waypoints, simulated time: rows (t, q...)
+            trace = np.column_stack([np.concatenate(r.trace_t), np.concatenate(r.trace_q)])
+            r.trace_t.clear()
+            r.trace_q.clear()
+        if r.beads:               # the beads with their times: rows (p0 xyz, p1 xyz, t)
+            beads = np.concatenate([np.column_stack([b.p0, b.p1, b.t]) for b in r.beads])
         for bead in r.beads:
+            if self.store is not None:
+                self.store.append(bead.p0, bead.p1, bead.e_mm, bead.line, bead.layer, bead.t)
             self.markers.add(bead)
+        changed = bool(acks or out or r.beads or r.state is ArmState.PRINTING)
         r.beads.clear()
-        return out, r.joints(self.sim_now), self._peers_changed
+        self._traced = (trace, beads)
+        return out, acks, changed, r.joints(self.sim_now), self._peers_changed
 
     def _loop(self):
         period = 1.0 / self.rate
         last = time.monotonic()
-        next_joints = next_markers = next_retry = next_report = last
+        next_joints = next_markers = next_retry = next_report = next_checkpoint = last
         last_state, last_status = None, None
         while not rospy.is_shutdown():
             wall = time.monotonic()
             self._wake.clear()                # before the queue is drained: no command is missed
             try:
                 with self.lock:
-                    out, q, peers_changed = self._step(wall - last)
+                    out, acks, changed, q, peers_changed = self._step(wall - last)
                     state = self.runner.state
                     if self._outgoing:
                         out = self._outgoing + out
@@ -332,6 +373,15 @@ class FirmwareNode:
                     for m in out:
                         if isinstance(m, Status) and m.robot == self.arm.id:
                             last_status = m
+                    # number what goes out, then checkpoint, then publish: a crash
+                    # anywhere in between is undone by the restart
+                    numbered = self._number(out)
+                    # (before any ack or message goes out; otherwise at most every
+                    # checkpoint_period s while printing: a crash redoes at most that)
+                    if self.store is not None and (acks or numbered or state != last_state or
+                                                   (changed and wall >= next_checkpoint)):
+                        self._checkpoint()
+                        next_checkpoint = wall + self.checkpoint_period
                     markers = self.markers.changed(rospy.Time.now()) if wall >= next_markers else None
                     stats = self._stats_json() if (state != last_state or peers_changed or
                                                    (state is ArmState.PRINTING and out)) else None
@@ -340,7 +390,13 @@ class FirmwareNode:
                 rospy.signal_shutdown("firmware loop failed: %s" % exc)
                 raise
             last = wall
-            self._send(out)
+            for a in acks:
+                self._to_hub.publish(String(encode(a)))
+            for o in numbered:
+                self._to_hub.publish(String(encode(o.message)))
+            for pub, rows in zip((self._trace, self._bead_times), self._traced):
+                if rows is not None:
+                    pub.publish(_rows(rows))
             if wall >= next_retry:
                 next_retry = wall + self.retry_period
                 with self._io:
@@ -375,11 +431,57 @@ class FirmwareNode:
                     time.sleep(0)             # let the callbacks run
                 self._wake.wait(max(0.0, tick_end - time.monotonic()))
 
-    def _send(self, messages):
-        for m in messages:
-            with self._io:
-                o = self.sender.send(m, HUB, time.monotonic())
-            self._to_hub.publish(String(encode(o.message)))
+    def _number(self, messages):
+        out = []
+        with self._io:
+            for m in messages:
+                out.append(self.sender.send(m, HUB, time.monotonic()))
+        return out
+
+    # ------------------------------------------------------------- persistence
+    def _new_run(self):
+        self.markers.new_run()
+        if self.store is not None:
+            self.store.new_journal()
+
+    def _checkpoint(self):
+        with self._io:
+            rx, tx = self.receiver.snapshot(), self.sender.snapshot()
+        self.store.save({"run_id": self.run_id, "arm": self.arm.name, "runner": self.runner.checkpoint(),
+                         "receiver": rx, "sender": tx, "sim_now": self.sim_now,
+                         "peers": {str(k): v for k, v in self.peers.items()}})
+
+    def _resume_from_checkpoint(self):
+        """After a crash (same ROS run): the runner, the duplicate filter,
+        the unacknowledged messages and the deposit so far, from the state
+        directory; the other arms are asked where they are (A3)."""
+        cp = self.store.load()
+        if cp is None or cp.get("run_id") != self.run_id or cp.get("arm") != self.arm.name:
+            self.store.new_journal()           # another run's state: start clean
+            return
+        rcp = cp["runner"]
+        if rcp["chunk"] is not None:
+            identity, text = self.store.load_chunk()
+            if list(identity) != list(rcp["chunk"]):
+                rospy.logerr("%s firmware: checkpoint and saved chunk differ: starting clean", self.arm.name)
+                self.store.new_journal()
+                return
+            self.runner.restore(rcp, text)
+        with self._io:
+            self.receiver.restore(cp["receiver"])
+            self.sender.restore(cp["sender"], time.monotonic())
+        self.sim_now = max(float(cp["sim_now"]), self.runner.clock)
+        self.peers = {int(k): v for k, v in cp["peers"].items()}
+        self.store.reopen(int(cp["records"]))
+        journal = self.store.read_journal(int(cp["records"]))
+        if len(journal):
+            self.markers.add(Bead(journal[:, 0:3], journal[:, 3:6], journal[:, 6], journal[:, 7].astype(int),
+                                  journal[:, 8].astype(int), journal[:, 9]))
+        self.resumed = cp
+        self._outgoing = [self.runner.status(with_position=True)] + [
+            SendPosition(a.id) for a in self.cell.arms if a.id != self.arm.id]
+        rospy.logwarn("%s firmware: resumed from its checkpoint: %s at line %d, %d beads kept",
+                      self.arm.name, self.runner.state.name, self.runner.done_line, len(journal))
 
     def _stats_json(self):
         r = self.runner
@@ -398,6 +500,21 @@ class FirmwareNode:
             markers = self.markers.all()
             if markers.markers:
                 publish(markers)
+
+
+def _rows(a):
+    """(N, M) array -> Float64MultiArray (dims rows, cols)."""
+    msg = Float64MultiArray()
+    msg.layout.dim = [MultiArrayDimension("rows", a.shape[0], a.size), MultiArrayDimension("cols", a.shape[1],
+                                                                                        a.shape[1])]
+    msg.data = a.ravel().tolist()
+    return msg
+
+
+def rows_of(msg):
+    """Float64MultiArray from :func:`_rows` -> (N, M) array."""
+    cols = msg.layout.dim[1].size if len(msg.layout.dim) > 1 else 1
+    return np.asarray(msg.data, dtype=float).reshape(-1, cols)
 
 
 class _NewSubscriber(rospy.SubscribeListener):

@@ -1,0 +1,159 @@
+"""Shared by the fault suite (tests/ros/test_faults.py) and `make faults`
+(tests/bench/bench_faults.py): one print of a small model by the running
+system (roslaunch both_arms.launch speed:=max on its own master port: hub,
+firmware nodes with their state directory, robot_state_publisher), started
+by the front end, watched by a recorder (ambots.ros.capture.PrintRecorder:
+the executed trajectories in simulated time -> contacts) -- with hub fault
+injection, a kill -9 of a firmware node mid-print (roslaunch respawns it;
+it resumes from its checkpoint) and/or a slowed arm.
+
+Result: the per-arm deposit journals (ambots.checkpoint), the recorder's
+report, the hub's last progress JSON (fault and retry counts), the number
+of kills."""
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from ambots.checkpoint import StateStore
+
+_WATCH = r"""
+import json, sys, time, rospy
+from std_msgs.msg import String
+from ambots.config import default_cell_path, load_cell
+from ambots.ros.capture import PrintRecorder
+rospy.init_node("fault_watch", anonymous=True)
+cell = load_cell(default_cell_path())
+rec = PrintRecorder(cell)
+hub = {}
+def on_progress(msg):
+    hub["last"] = json.loads(msg.data)
+rospy.Subscriber("/ambots/progress", String, on_progress, queue_size=10)
+print("ready", flush=True)
+deadline = time.monotonic() + float(sys.argv[2])
+while time.monotonic() < deadline and not rospy.is_shutdown():
+    finished, failed = rec.done()
+    if finished or failed:
+        break
+    time.sleep(0.1)
+time.sleep(1.5)                       # the last traces and progress
+report = rec.write(sys.argv[1])
+report["hub_progress"] = hub.get("last")
+json.dump(report, open(sys.argv[1] + "/report.json", "w"), indent=1)
+print("written", flush=True)
+"""
+
+
+def small_model(path):
+    """A 160 x 40 x 1.2 mm block (6 layers): a real two-arm job in seconds."""
+    import trimesh
+    box = trimesh.creation.box(extents=(160.0, 40.0, 1.2))
+    box.apply_translation((0.0, 0.0, 0.6))
+    box.export(path)
+    return path
+
+
+def run_print(tmp, port, model, faults="", kill_after=None, slowdown="1.0", seed=0, timeout=600):
+    """One print (see the module docstring).  ``kill_after``: wall seconds
+    after the first motion at which the Kinova's firmware is killed with
+    SIGKILL (None: no kill)."""
+    tmp = str(tmp)
+    os.makedirs(tmp, exist_ok=True)
+    env = dict(os.environ, ROS_MASTER_URI="http://localhost:%d" % port, ROS_HOME=os.path.join(tmp, "ros_home"))
+    state = os.path.join(tmp, "state")
+    out = os.path.join(tmp, "out")
+    os.makedirs(out, exist_ok=True)
+    logs = {n: open(os.path.join(tmp, n + ".log"), "w") for n in ("launch", "watch", "front_end")}
+    launch = subprocess.Popen(["roslaunch", "-p", str(port), "ambots", "both_arms.launch", "speed:=max",
+                               "faults:=%s" % faults, "state_dir:=%s" % state, "slowdown:=%s" % slowdown,
+                               "retry_timeout:=0.05"],
+                              stdout=logs["launch"], stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    kills = 0
+    try:
+        watch = subprocess.Popen([sys.executable, "-c", _WATCH, out, str(timeout)], stdout=subprocess.PIPE,
+                                 stderr=logs["watch"], text=True, env=env)
+        for line in watch.stdout:
+            if line.strip() == "ready":
+                break
+        import rospkg
+        node = os.path.join(rospkg.RosPack().get_path("ambots"), "nodes", "front_end")
+        fe = subprocess.Popen([sys.executable, node, "--print", "--model", model, "--out",
+                               os.path.join(tmp, "job"), "--timeout", str(timeout)],
+                              stdout=logs["front_end"], stderr=subprocess.STDOUT, env=env)
+        if kill_after is not None:
+            kills = _kill_firmware_after(state, "kinova", kill_after, fe)
+        rc = fe.wait(timeout + 60)
+        watch.wait(120)
+    finally:
+        os.killpg(launch.pid, signal.SIGINT)
+        try:
+            launch.wait(30)
+        except subprocess.TimeoutExpired:
+            os.killpg(launch.pid, signal.SIGKILL)
+        for f in logs.values():
+            f.close()
+    report_path = os.path.join(out, "report.json")
+    report = json.load(open(report_path)) if os.path.exists(report_path) else None
+    journals = {}
+    for arm in ("kinova", "ur10"):
+        store = StateStore(state, arm)
+        cp = store.load()
+        journals[arm] = store.read_journal(cp["records"] if cp else None)
+    return {"front_end_rc": rc, "report": report, "journals": journals, "kills": kills, "tmp": tmp}
+
+
+def _firmware_pid(arm):
+    for pid in os.listdir("/proc"):
+        try:
+            cmd = open("/proc/%s/cmdline" % pid, "rb").read().split(b"\0")
+        except OSError:
+            continue
+        if b"__name:=firmware" in cmd and any(c.startswith(b"__log:=") and (b"/%s-firmware" % arm.encode()) in c
+                                              for c in cmd):
+            return int(pid)
+    return None
+
+
+def _kill_firmware_after(state, arm, seconds, fe):
+    """Wait until the arm's journal has beads, then ``seconds`` more; SIGKILL its firmware."""
+    journal = os.path.join(state, "%s.beads" % arm)
+    t_end = time.monotonic() + 300
+    while time.monotonic() < t_end and fe.poll() is None:
+        if os.path.exists(journal) and os.path.getsize(journal) > 0:
+            break
+        time.sleep(0.05)
+    time.sleep(seconds)
+    pid = _firmware_pid(arm)
+    if pid is None or fe.poll() is not None:
+        return 0
+    os.kill(pid, signal.SIGKILL)
+    return 1
+
+
+def by_line(journal):
+    """{line: (filament mm, bead length m)} of a deposit journal."""
+    out = {}
+    for rec in journal:
+        line = int(rec[7])
+        e, length = out.get(line, (0.0, 0.0))
+        out[line] = (e + rec[6], length + float(np.linalg.norm(rec[3:6] - rec[0:3])))
+    return out
+
+
+def compare_lines(clean, other):
+    """(missing lines, extra lines, largest filament difference mm, largest length difference m)."""
+    a, b = by_line(clean), by_line(other)
+    missing, extra = sorted(set(a) - set(b)), sorted(set(b) - set(a))
+    common = set(a) & set(b)
+    de = max([abs(a[k][0] - b[k][0]) for k in common] or [0.0])
+    dl = max([abs(a[k][1] - b[k][1]) for k in common] or [0.0])
+    return missing, extra, de, dl
+
+
+def free_port(seed):
+    return 11600 + random.Random(seed).randrange(0, 300)

@@ -1,0 +1,82 @@
+"""The fault suite (real roscore, hub, firmware nodes, front end): a clean
+print of a small two-arm job is the reference; then the same job with
+20 % drop + 10 % duplication + reordering on every hub topic (seeded),
+with the Kinova's firmware killed (SIGKILL) mid-print and respawned, and
+with the UR10 running 30 % slower than planned.  Every run must finish
+with the same deposit (per arm: same beads in the same order under faults;
+per G-code line the same filament and bead length after a kill), and no
+contact in the executed motion."""
+import os
+import sys
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from faults import compare_lines, run_print, small_model  # noqa: E402
+
+FAULTS = "drop=0.2 dup=0.1 reorder=0.3 reorder_window=0.05 delay=0.002 seed=%d"
+NO_CONTACT = {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    return small_model(str(tmp_path_factory.mktemp("model") / "block.stl"))
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory, model):
+    run = run_print(tmp_path_factory.mktemp("clean"), 11611, model)
+    assert run["front_end_rc"] == 0, run["tmp"]
+    assert run["report"]["finished"] and run["report"]["collisions"] == NO_CONTACT, run["report"]
+    for arm, j in run["journals"].items():
+        assert len(j) > 500, arm
+    return run
+
+
+def _same_beads(a, b):
+    assert a.shape == b.shape
+    np.testing.assert_allclose(a[:, :9], b[:, :9], rtol=0, atol=1e-9)    # positions, filament, line, layer
+
+
+@pytest.mark.parametrize("seed", [7])
+def test_dropped_duplicated_reordered_messages_change_nothing(tmp_path, model, clean, seed):
+    run = run_print(tmp_path, 11612, model, faults=FAULTS % seed)
+    assert run["front_end_rc"] == 0, run["tmp"]
+    rep = run["report"]
+    assert rep["finished"] and rep["collisions"] == NO_CONTACT, rep
+    faults = rep["hub_progress"]["faults"]
+    assert faults["in"]["dropped"] > 10 and faults["out"]["dropped"] > 10, faults
+    assert faults["in"]["duplicated"] > 5 and faults["out"]["reordered"] > 5, faults
+    for arm in ("kinova", "ur10"):
+        _same_beads(clean["journals"][arm], run["journals"][arm])
+
+
+@pytest.mark.parametrize("seed", [3])
+def test_a_firmware_killed_mid_print_resumes_from_its_checkpoint(tmp_path, model, clean, seed):
+    run = run_print(tmp_path, 11613, model, faults=FAULTS % seed, kill_after=0.8)
+    assert run["kills"] == 1, run["tmp"]
+    assert run["front_end_rc"] == 0, run["tmp"]
+    rep = run["report"]
+    assert rep["finished"] and rep["collisions"] == NO_CONTACT, rep
+    launch_log = open(os.path.join(run["tmp"], "launch.log")).read()
+    assert "resumed from its checkpoint" in launch_log
+    # the killed arm: every line once, the same filament and path length as the clean run
+    missing, extra, de, dl = compare_lines(clean["journals"]["kinova"], run["journals"]["kinova"])
+    assert not missing and not extra
+    assert de < 1e-6 and dl < 2e-5, (de, dl)
+    # the other arm waited at its barriers and laid exactly the same beads
+    _same_beads(clean["journals"]["ur10"], run["journals"]["ur10"])
+
+
+def test_an_arm_30_percent_slower_than_planned_never_collides(tmp_path, model, clean):
+    run = run_print(tmp_path, 11614, model, slowdown="ur10=1.3")
+    assert run["front_end_rc"] == 0, run["tmp"]
+    rep = run["report"]
+    assert rep["finished"] and rep["collisions"] == NO_CONTACT, rep
+    assert rep["min_clearance_mm"] > 0
+    # the slow arm took longer, the barriers held the other one
+    assert rep["arms"]["ur10"]["print_time_s"] > 1.2 * clean["report"]["arms"]["ur10"]["print_time_s"]
+    assert rep["arms"]["kinova"]["idle_time_s"] > clean["report"]["arms"]["kinova"]["idle_time_s"]
+    for arm in ("kinova", "ur10"):
+        _same_beads(clean["journals"][arm], run["journals"][arm])
