@@ -19,13 +19,14 @@ APT_PACKAGES := ros-core catkin python3-rospy python3-roslaunch python3-rostest 
 # the venv first on PATH (done by the package's catkin env hook)
 ROSENV := source $(WS)/devel/setup.bash &&
 
-.PHONY: help setup apt venv workspace test unit rostest bench demo print clean
+.PHONY: help setup apt venv workspace test unit rostest bench faults demo print clean
 
 help:
 	@echo "make setup  - install what is missing (apt, .venv, catkin workspace)"
 	@echo "make demo   - set up, then run the demo headless; outputs in out/demo"
 	@echo "make test   - set up, then run every test (pytest + rostest)"
 	@echo "make bench  - set up, then run the benchmarks"
+	@echo "make faults - set up, then measure the fault figures (faults, kill -9, slowed arm, bad input)"
 	@echo "make print MODEL=path OUT=dir [CELL= MODE= SLICER=] - print any model like the demo"
 
 setup: apt venv workspace
@@ -71,6 +72,10 @@ rostest: setup
 
 bench: setup
 	$(ROSENV) cd $(ROOT) && $(PY) tests/bench/run.py
+
+# the fault figures (README): dropped/duplicated/reordered messages, kill -9, a slowed arm, hostile input
+faults: setup
+	$(ROSENV) cd $(ROOT) && $(PY) tests/bench/run.py faults
 
 demo: setup
 	rm -rf out/demo && mkdir -p out/demo

@@ -157,3 +157,25 @@ def compare_lines(clean, other):
 
 def free_port(seed):
     return 11600 + random.Random(seed).randrange(0, 300)
+
+
+def program_filament(path):
+    """{line: filament mm} of the moving extrusions of a program file."""
+    from ambots.gcode import Segment, parse_gcode_text
+    out = {}
+    for s in parse_gcode_text(open(path).read(), path):
+        if type(s) is Segment and s.extrude and s.start != s.end:
+            out[s.line] = out.get(s.line, 0.0) + s.e
+    return out
+
+
+def coverage(journal, program_path):
+    """(lines of the program never printed, lines printed that lay no
+    filament in the program, largest |filament printed - programmed| mm):
+    each extrusion exactly once means ([], [], ~0)."""
+    want = program_filament(program_path)
+    got = {k: v[0] for k, v in by_line(journal).items()}
+    missing = sorted(set(want) - set(got))
+    extra = sorted(set(got) - set(want))
+    diff = max([abs(got[k] - want[k]) for k in set(want) & set(got)] or [0.0])
+    return missing, extra, diff

@@ -102,6 +102,8 @@ class PrintRecorder:
         self.started = time.time()
         self.traces = {}          #: arm -> [(K, 1 + n) rows of (simulated t, joints)] as executed
         self.bead_times = {}      #: arm -> [(K, 7) rows of (p0, p1, simulated t)]
+        self._row_seq = {}
+        self.trace_gaps = 0       #: trace/bead chunks never received (numbered by the firmware)
         rospy.Subscriber(DEPOSIT_TOPIC, MarkerArray, self._on_markers, queue_size=100)
         rospy.Subscriber(topics.PROGRESS_TOPIC, String, self._on_progress, queue_size=10)
         for arm in cell.arms:
@@ -110,9 +112,9 @@ class PrintRecorder:
             rospy.Subscriber("/%s/firmware/stats" % arm.name, String, self._on_stats,
                              callback_args=arm.name, queue_size=10)
             rospy.Subscriber("/%s/firmware/trace" % arm.name, Float64MultiArray, self._on_rows,
-                             callback_args=(self.traces, arm.name), queue_size=1000)
+                             callback_args=(self.traces, arm.name), queue_size=None)
             rospy.Subscriber("/%s/firmware/beads" % arm.name, Float64MultiArray, self._on_rows,
-                             callback_args=(self.bead_times, arm.name), queue_size=1000)
+                             callback_args=(self.bead_times, arm.name), queue_size=None)
 
     def _on_markers(self, msg):
         with self._lock:
@@ -136,6 +138,13 @@ class PrintRecorder:
         rows = rows_of(msg)
         with self._lock:
             store.setdefault(name, []).append(rows)
+            key = (id(store), name)
+            last = self._row_seq.get(key)
+            seq = msg.layout.data_offset
+            if last is not None and seq > last + 1:
+                self.trace_gaps += seq - last - 1      # chunks lost: the check would interpolate across
+            if last is None or seq > last or seq == 1:
+                self._row_seq[key] = seq
 
     def check_executed(self):
         """Arm-arm, arm-bed and arm-part contacts of the executed motion in
@@ -284,8 +293,10 @@ class PrintRecorder:
             report["min_clearance_mm"] = _round(executed["min_clearance_mm"])
             report["min_bed_clearance_mm"] = _round(executed["min_bed_clearance_mm"])
             report["min_part_clearance_mm"] = _round(executed["min_part_clearance_mm"])
+            report["trace_gaps"] = self.trace_gaps
             report["note"] = ("contacts: the executed trajectories the firmware nodes published, sampled "
-                              "every 0.1 s of simulated time; live_*: the joint states as they arrived")
+                              "every 0.1 s of simulated time (trace_gaps: chunks not received, must be 0); "
+                              "live_*: the joint states as they arrived")
         else:
             report["note"] = "contacts: the joint states as they arrived (no firmware traces)"
         report["live_collisions"], report["live_min_clearance_mm"] = live, live_min

@@ -229,8 +229,9 @@ class FirmwareNode:
         self._deposit = rospy.Publisher(DEPOSIT_TOPIC, MarkerArray, queue_size=100,
                                         subscriber_listener=_NewSubscriber(self))
         self._stats = rospy.Publisher("~stats", String, queue_size=10, latch=True)
-        self._trace = rospy.Publisher("~trace", Float64MultiArray, queue_size=1000)
-        self._bead_times = rospy.Publisher("~beads", Float64MultiArray, queue_size=1000)
+        self._trace = rospy.Publisher("~trace", Float64MultiArray, queue_size=100000)
+        self._bead_times = rospy.Publisher("~beads", Float64MultiArray, queue_size=100000)
+        self._row_seq = {"trace": 0, "beads": 0}
         self._js = JointState(name=[arm.prefix + j for j in arm.profile.joint_names])
         for other in self.cell.arms:
             if other.name != arm.name:
@@ -394,9 +395,10 @@ class FirmwareNode:
                 self._to_hub.publish(String(encode(a)))
             for o in numbered:
                 self._to_hub.publish(String(encode(o.message)))
-            for pub, rows in zip((self._trace, self._bead_times), self._traced):
-                if rows is not None:
-                    pub.publish(_rows(rows))
+            for key, pub, rows in zip(("trace", "beads"), (self._trace, self._bead_times), self._traced):
+                if rows is not None:          # numbered (data_offset): a subscriber can tell a gap
+                    self._row_seq[key] += 1
+                    pub.publish(_rows(rows, self._row_seq[key]))
             if wall >= next_retry:
                 next_retry = wall + self.retry_period
                 with self._io:
@@ -502,9 +504,10 @@ class FirmwareNode:
                 publish(markers)
 
 
-def _rows(a):
-    """(N, M) array -> Float64MultiArray (dims rows, cols)."""
+def _rows(a, seq=0):
+    """(N, M) array -> Float64MultiArray (dims rows, cols; ``seq`` in data_offset)."""
     msg = Float64MultiArray()
+    msg.layout.data_offset = int(seq)
     msg.layout.dim = [MultiArrayDimension("rows", a.shape[0], a.size), MultiArrayDimension("cols", a.shape[1],
                                                                                         a.shape[1])]
     msg.data = a.ravel().tolist()
