@@ -233,7 +233,10 @@ class FirmwareNode:
         self._bead_times = rospy.Publisher("~beads", Float64MultiArray, queue_size=100000)
         self._row_seq = {"trace": 0, "beads": 0}
         self._js = JointState(name=[arm.prefix + j for j in arm.profile.joint_names])
-        for other in self.cell.arms:
+        # plan around the other arms' current poses only when the clocks follow the wall: at
+        # speed max each arm's clock runs ahead on its own, so another arm's latest joint state
+        # is not where it is at this arm's moment (the barriers keep the arms apart)
+        for other in self.cell.arms if self.speed is not None else ():
             if other.name != arm.name:
                 rospy.Subscriber(topics.joint_states_topic(other.name), JointState,
                                  self._on_other_joints, callback_args=other, queue_size=1)
