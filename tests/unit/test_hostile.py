@@ -797,7 +797,6 @@ def test_an_executable_name_with_shell_syntax_is_not_found_not_run(tmp_path, mon
     assert no_pwned(tmp_path)
 
 
-@pytest.mark.skipif(shutil.which("prusa-slicer") is None, reason="prusa-slicer not installed")
 def test_real_prusa_slicer_with_nasty_names(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     stl = tmp_path / NASTY
