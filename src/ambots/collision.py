@@ -29,7 +29,9 @@ API (metres, radians; N configurations, C capsules of one arm):
 * :func:`part_clearance` -- (N,) clearance of an arm to the part printed so far
   (a world axis-aligned box, e.g. :meth:`ambots.deposit.Deposit.bounds`).
 * :func:`seam_zone` / :func:`seam_zone_mm` -- the seam-zone width of the
-  concurrent schedule (:mod:`ambots.coordinate`) from the arms' geometry.
+  concurrent schedule (:mod:`ambots.coordinate`) from the arms' geometry;
+  :func:`seam_zones_mm` -- the same width pair by pair (facing protrusions
+  only, no clearance check), for cells of many arms.
 
 A *clearance* is a surface-to-surface distance: positive apart, zero touching,
 negative overlapping (minus the depth of the deepest segment point inside the
@@ -45,7 +47,7 @@ from ambots.config import ArmInstance, pose_matrix
 from ambots.errors import KinematicsError, UnreachableError
 
 __all__ = ["ArmBody", "segment_distance", "capsule_distances", "clearance_between", "box_clearance",
-           "bed_clearance", "part_clearance", "SeamZone", "seam_zone", "seam_zone_mm"]
+           "bed_clearance", "part_clearance", "SeamZone", "seam_zone", "seam_zone_mm", "seam_zones_mm"]
 
 #: capsule pairs evaluated at once by :func:`capsule_distances` (bounds memory)
 _CHUNK_PAIRS = 1 << 18
@@ -488,3 +490,152 @@ def seam_zone_mm(cell, arms=None, margin_mm=10.0, direction="facing", **kw):
         raise ValueError("direction must be 'facing' or 'any', got %r" % (direction,))
     z = seam_zone(cell, arms, margin_mm, **kw)
     return z.facing_mm if direction == "facing" else z.any_mm
+
+
+def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n_heights=4, spacing=0.05,
+                  window=0.5, parts=None, part_spacing=0.01):
+    """Seam-zone width (mm) of each pair of arms: the facing protrusions of
+    the two arms across the plane between their shares (the line between
+    their bases for two arms) plus ``margin_mm``, as :func:`seam_zone`
+    computes them (``facing_mm`` is the largest of these), without its
+    clearance check, so a cell of many arms costs one IK sampling per arm.
+
+    Each arm is sampled (IK from its home, nozzle down) on a bed grid of at
+    least ``n`` x ``n`` points, at most ``spacing`` (m) apart, at
+    ``n_heights`` heights; a redundant arm (more than 6 joints) also from
+    seeds with its upper-arm roll turned by up to 0.8 rad, since it drifts
+    along its self-motion while it prints.  Only the samples whose nozzle is
+    on the arm's own share of the bed count (the part it would get if the
+    whole bed were split among ``arms`` like a model,
+    :func:`ambots.partition.partition`: an arm never prints on another's
+    share, and on a long bed it could reach far past its neighbour in odd
+    poses); for a pair, of those only the ones at most ``window`` (m) from
+    the other arm's share (an arm far from a seam is not at it), and with
+    the nozzle no farther from the plane between them than the arm's own
+    base (farther, the fixed base stays between the nozzle and the plane).
+    Two arms never that near each other (far apart in a row) get a zone of
+    ``margin_mm``.  For the default cell this gives the same 90.1 mm as
+    :func:`seam_zone`.
+
+    ``parts``: the :class:`~ambots.partition.Part` of each arm of a job
+    (mm): the shares are then the parts themselves (a grid ``part_spacing``
+    (m) apart over each part's bounding box, inside its planes, from the
+    bed to the part's top), so that the zone fits the poses the job uses.
+    ``pairs``: the (name, name) pairs wanted (default: every pair of
+    ``arms``).  Returns {(a, b): mm}, with both orders of every pair."""
+    import manifold3d as m3
+
+    from ambots.partition import arm_sites_mm, partition
+    from ambots.workspace import down_in_base, world_to_base
+    arms = list(cell.arms if arms is None else arms)
+    names = [a.name for a in arms]
+    if pairs is None:
+        pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+    pairs = [(a, b) for a, b in pairs if a != b]
+    if not pairs:
+        return {}
+    if parts is None:
+        # each point of a bed grid belongs to the arm whose share of the bed holds it
+        sx, sy, _ = cell.bed.size
+        nx, ny = max(n, int(np.ceil(sx / spacing)) + 1), max(n, int(np.ceil(sy / spacing)) + 1)
+        u, v = np.meshgrid(np.linspace(-sx / 2, sx / 2, nx), np.linspace(-sy / 2, sy / 2, ny), indexing="ij")
+        flat = np.stack([u.ravel(), v.ravel()], axis=1)
+        slab = m3.Manifold.cube([sx * 1000.0, sy * 1000.0, 1.0]).translate([-sx * 500.0, -sy * 500.0, 0.0])
+        regions = [(part.planes, cell.bed.max_height, part.neighbours)
+                   for part in partition(slab, cell, arms, check_reach=False)]
+    else:
+        # a grid over each part's bounding box
+        by_name = {p.arm.name: p for p in parts}
+        regions, chunks = [], []
+        for name in names:
+            part = by_name.get(name)
+            if part is None or part.empty:
+                regions.append(([(np.array([0.0, 0.0, 1.0]), np.inf)], 0.0, []))
+                continue
+            lo, hi = np.asarray(part.manifold.bounding_box()[:3]) / 1000.0, \
+                np.asarray(part.manifold.bounding_box()[3:]) / 1000.0
+            gx = np.arange(lo[0], hi[0] + part_spacing / 2, part_spacing)
+            gy = np.arange(lo[1], hi[1] + part_spacing / 2, part_spacing)
+            u, v = np.meshgrid(gx, gy, indexing="ij")
+            chunks.append(np.stack([u.ravel(), v.ravel()], axis=1))
+            regions.append((part.planes, max(float(hi[2]), 1e-3), list(part.neighbours)))
+        flat = np.concatenate(chunks) if chunks else np.zeros((0, 2))
+    flat_owner = np.full(len(flat), -1)
+    for i, (planes, _, _) in enumerate(regions):
+        inside = np.all([flat * 1000.0 @ np.asarray(nrm)[:2] - off >= -1e-6 for nrm, off in planes], axis=0)
+        flat_owner[(flat_owner < 0) & inside] = i
+    top = max(h for _, h, _ in regions)
+    heights = np.linspace(0.0, top, n_heights)
+    tips = np.concatenate([np.column_stack([flat, np.full(len(flat), h)]) for h in heights])
+    owner = np.tile(flat_owner, n_heights)
+    for i, (_, h, _) in enumerate(regions):              # no higher than the part
+        owner[(owner == i) & (tips[:, 2] > h + 1e-9)] = -1
+    used = sorted({x for pair in pairs for x in pair}, key=names.index)
+    sampled, own = {}, {}
+    for name in used:
+        arm = arms[names.index(name)]
+        body = ArmBody.from_arm(arm)
+        mine = tips[owner == names.index(name)]                 # poses on its own share only
+        local = world_to_base(arm, _transform(cell.bed.pose, mine))
+        home = np.asarray(arm.profile.home, dtype=float)
+        seeds = [home]
+        if body.kin.dof > 6:
+            # a redundant arm drifts along its self-motion while it prints (each
+            # pose solved from the last): sample that too, from seeds with the
+            # joint before the elbow (the upper arm's roll in a 7-joint arm)
+            # turned up to 0.8 rad, and count the worst
+            roll = body.kin.dof // 2 - 1
+            for delta in (-0.8, -0.4, 0.4, 0.8):
+                seed = home.copy()
+                seed[roll] = np.clip(seed[roll] + delta, body.kin.lower[roll], body.kin.upper[roll])
+                seeds.append(seed)
+        sols = [body.kin.ik_batch(local, seed, down_in_base(arm))[:2] for seed in seeds]
+        Q = np.concatenate([q for q, _ in sols])
+        ok = np.concatenate([k for _, k in sols])
+        mine = np.tile(mine, (len(seeds), 1))
+        if not ok.any():
+            raise UnreachableError("arm %r reaches none of the %d grid points of its share with the nozzle down"
+                                   % (name, len(mine)))
+        A, B, _ = body.capsules(Q[ok])
+        inv = np.linalg.inv(cell.bed.pose)
+        sampled[name] = _Sampled(arm, body, mine[ok], Q[ok], _transform(inv, A), _transform(inv, B))
+        own[name] = np.full(int(ok.sum()), names.index(name))
+    sites = dict(zip(names, arm_sites_mm(cell, arms) / 1000.0))
+
+    def to_share(P, i):
+        """Horizontal distance (m) from points P to the grid points of share i."""
+        Q = flat[flat_owner == i]
+        out = np.full(len(P), np.inf)
+        for k in range(0, len(P) if len(Q) else 0, 256):
+            out[k:k + 256] = np.linalg.norm(P[k:k + 256, None, :2] - Q[None], axis=2).min(axis=1)
+        return out
+
+    # the plane between each pair, from each side: distance n . p - off (mm)
+    plane_of = {}
+    for i, (planes, _, others) in enumerate(regions):
+        for (nrm, off), other in zip(planes, others):
+            if other in names:
+                plane_of[i, names.index(other)] = (np.asarray(nrm, dtype=float)[:2], float(off))
+    out = {}
+    for a, b in pairs:
+        ia, ib = names.index(a), names.index(b)
+        sides = []
+        for x, ix, other in ((a, ia, ib), (b, ib, ia)):
+            if (ix, other) in plane_of:
+                nrm, off = plane_of[ix, other]
+                u = -nrm / np.linalg.norm(nrm)
+                # a pose with the nozzle farther from the plane than the arm's
+                # own base has the (fixed) base between the nozzle and the
+                # plane: the base does not come nearer, whatever the pose
+                front = sampled[x].tips[:, :2] * 1000.0 @ nrm - off <= sites[x] * 1000.0 @ nrm - off
+            else:
+                u = (sites[names[other]] - sites[x]) / np.linalg.norm(sites[names[other]] - sites[x])
+                front = np.ones(len(own[x]), dtype=bool)
+            mine = (own[x] == ix) & front
+            d = np.full(len(mine), np.inf)
+            d[mine] = to_share(sampled[x].tips[mine], other)
+            sides.append((_protrusion(sampled[x], band, u), mine, d))
+        near = [(p, mine & (d <= window)) for p, mine, d in sides]
+        z = margin_mm + sum(float(p[k].max()) * 1000.0 if k.any() else 0.0 for p, k in near)
+        out[a, b] = out[b, a] = z
+    return out

@@ -60,6 +60,9 @@ class Part:
     manifold: object               #: manifold3d.Manifold, mm, bed frame
     planes: List[Tuple[np.ndarray, float]] = field(default_factory=list)  #: kept side: n . p >= offset
     est_time_s: float = 0.0
+    #: the arm on the other side of each plane (``planes[j]`` is the boundary
+    #: with arm ``neighbours[j]``, an arm name), in the same order as ``planes``
+    neighbours: List[str] = field(default_factory=list)
 
     @property
     def volume(self):
@@ -83,8 +86,9 @@ def arm_sites_mm(cell, arms):
 
 
 def _planes(sites, weights, i, shift=0.0):
-    """Half-spaces (n, offset) of power cell i; ``shift`` (mm) moves each plane
-    outward (into the neighbour)."""
+    """Half-spaces (n, offset) of power cell i, one per other site j in the
+    order of ``sites`` (j != i); ``shift`` (mm) moves each plane outward (into
+    the neighbour)."""
     out = []
     for j in range(len(sites)):
         if j == i:
@@ -121,7 +125,7 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
     if model.is_empty() or model.volume() <= 0:
         raise MeshError("nothing to partition: the model is empty")
     if len(arms) == 1:
-        parts = [Part(arms[0], model, [], estimate_print_time(model, est))]
+        parts = [Part(arms[0], model, [], estimate_print_time(model, est), [])]
     else:
         sites = arm_sites_mm(cell, arms)
         lo, hi = np.array(model.bounding_box()[:2]), np.array(model.bounding_box()[3:5])
@@ -152,7 +156,8 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
         for i, arm in enumerate(arms):
             planes = _planes(sites, w, i, shift)
             piece = _cut(model, planes)
-            parts.append(Part(arm, piece, planes, estimate_print_time(_cut(model, _planes(sites, w, i)), est)))
+            parts.append(Part(arm, piece, planes, estimate_print_time(_cut(model, _planes(sites, w, i)), est),
+                              [a.name for j, a in enumerate(arms) if j != i]))
     if check_reach:
         for part in parts:
             _check_reach(cell, part)

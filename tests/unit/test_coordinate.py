@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from ambots.config import default_cell_path, load_cell
-from ambots.coordinate import build_programs
+from ambots.coordinate import build_programs, home_positions_mm, park_positions_mm, seam_planes
 from ambots.gcode import Segment, parse_gcode_text
 from ambots.partition import partition
-from ambots.protocol import MoveTo, Start, WaitFor, decode
+from ambots.protocol import MoveTo, SendPosition, Start, WaitFor, decode
 
 
 @pytest.fixture(scope="module")
@@ -80,44 +80,110 @@ def test_bands_split_moves_that_cross_them(cell):
             assert d[0] >= band * w - 1e-6 and (band == k - 1 or d[1] <= (band + 1) * w + 1e-6)
 
 
-def execute(programs, rng):
-    """Execute programs line by line with random durations (0.1-3 s per line,
-    so any arm may run far slower than planned); ;@A9 blocks until the other
-    arm has completed line N.  Returns {arm: [(t0, t1, segment)]} for every
-    moving G-code line."""
+def execute(programs, rng, home=None):
+    """Execute programs line by line with random durations (0.1-3 s per
+    moving line or A7 park move, so any arm may run far slower than
+    planned), as the firmware does: ``;@A9 R W N`` blocks until the other
+    arm has *reported* line N or more, or is done; an arm reports its last
+    completed line only when it reaches the first of a run of A9 lines after
+    a move (the line before the run), at an ``;@A3`` line (that line), and
+    when it finishes, never while it waits.  ``home``: {arm: (x, y, z) mm}
+    where each nozzle starts (default: where its first move ends).
+
+    Returns {arm: [(t0, t1, p0, p1, kind)]}: the arm's whole time, in order,
+    as straight moves of the nozzle from p0 to p1 (mm, bed frame); kind
+    "move" (a G-code line), "park" (an A7 to the park position), "leave"
+    (an A7 from home, before the first move), "wait" (standing still at an
+    A9), "home" (waiting before the first move) or "end" (done)."""
     ids = {p.arm.id: name for name, p in programs.items()}
-    parsed = {}
-    for n, p in programs.items():
-        segs = [s for s in parse_gcode_text(p.text) if type(s) is Segment and s.start != s.end]
-        segs[0] = segs[0]._replace(start=segs[0].end)     # the first move comes from the park pose
-        parsed[n] = {s.line: s for s in segs}
     lines = {n: p.lines for n, p in programs.items()}
+    segs = {n: {s.line: s for s in parse_gcode_text(p.text) if type(s) is Segment} for n, p in programs.items()}
+    pos = {n: tuple(home[n]) if home else segs[n][min(segs[n])].end for n in lines}
     done = {n: 0 for n in lines}
+    reported = {n: 0 for n in lines}
     clock = {n: 0.0 for n in lines}
     spans = {n: [] for n in lines}
+    after_move = {n: False for n in lines}
+    started = {n: False for n in lines}
     for _ in range(10 ** 7):
         active = [n for n in lines if done[n] < len(lines[n])]
         if not active:
+            end = max(clock.values()) + 1.0
+            for n in lines:
+                spans[n].append((clock[n], end, pos[n], pos[n], "end"))
             return spans
         progressed = False
         for n in sorted(active, key=lambda n: clock[n]):
-            text = lines[n][done[n]]
-            if text.startswith(";@A9"):
+            text, i = lines[n][done[n]], done[n] + 1
+            if text.startswith(";@"):
                 cmd = decode(text[2:])
-                other = ids[cmd.other]
-                if done[other] < cmd.line:
-                    continue
-                clock[n] = max(clock[n], clock[other])
-            elif not text.startswith(";"):
+                if isinstance(cmd, WaitFor):
+                    if after_move[n]:
+                        reported[n] = i - 1
+                    after_move[n] = False
+                    other = ids[cmd.other]
+                    finished = done[other] >= len(lines[other])
+                    if not finished and reported[other] < cmd.line:
+                        continue
+                    if clock[other] > clock[n]:
+                        spans[n].append((clock[n], clock[other], pos[n], pos[n], "wait" if started[n] else "home"))
+                        clock[n] = clock[other]
+                elif isinstance(cmd, MoveTo) and cmd.robot == programs[n].arm.id:
+                    t0 = clock[n]
+                    clock[n] += rng.uniform(0.1, 3.0)
+                    target = (cmd.x, cmd.y, cmd.z)
+                    spans[n].append((t0, clock[n], pos[n], target, "park" if started[n] else "leave"))
+                    pos[n] = target
+                    after_move[n] = False
+                else:
+                    if isinstance(cmd, SendPosition):
+                        reported[n] = i
+                    after_move[n] = False
+            elif not text.startswith(";") and text.strip():
                 t0 = clock[n]
                 clock[n] += rng.uniform(0.1, 3.0)
-                if done[n] + 1 in parsed[n]:
-                    spans[n].append((t0, clock[n], parsed[n][done[n] + 1]))
+                if i in segs[n]:
+                    spans[n].append((t0, clock[n], pos[n], segs[n][i].end, "move"))
+                    pos[n] = segs[n][i].end
+                    started[n] = True
+                after_move[n] = True
             done[n] += 1
             progressed = True
             break
-        assert progressed, "deadlock: %s" % {n: lines[n][done[n]] for n in active}
+        assert progressed, "deadlock: %s" % {n: (done[n] + 1, lines[n][done[n]]) for n in active}
     raise AssertionError("did not finish")
+
+
+def closest_across(spans, planes, zones, park, skip=("leave",)):
+    """For every two arms with a plane between them: every two spans that
+    overlap in time, the sum of the two nozzles' distances to the plane
+    (closest points of each span; a park position counts as clear).
+    Returns ({(a, b): number of overlapping spans}, {(a, b): smallest sum - zone})."""
+    counts, slack = {}, {}
+    names = list(spans)
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            if (a, b) not in planes:
+                continue
+            n, o = planes[a, b]
+
+            def dist(arm, sign, p0, p1):
+                d = [sign * (float(np.dot(n, p)) - o) for p in (p0, p1) if not np.allclose(p, park[arm], atol=1e-3)]
+                return min(d) if d else np.inf
+
+            A = [(t0, t1, dist(a, 1.0, p0, p1)) for t0, t1, p0, p1, k in spans[a] if t1 > t0 and k not in skip]
+            B = [(t0, t1, dist(b, -1.0, p0, p1)) for t0, t1, p0, p1, k in spans[b] if t1 > t0 and k not in skip]
+            count, worst, ia, ib = 0, np.inf, 0, 0
+            while ia < len(A) and ib < len(B):          # each arm's spans follow each other in time
+                if max(A[ia][0], B[ib][0]) < min(A[ia][1], B[ib][1]):
+                    count += 1
+                    worst = min(worst, A[ia][2] + B[ib][2] - zones[a, b])
+                if A[ia][1] <= B[ib][1]:
+                    ia += 1
+                else:
+                    ib += 1
+            counts[a, b], slack[a, b] = count, worst
+    return counts, slack
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -128,28 +194,12 @@ def test_concurrent_nozzles_across_a_seam_stay_a_zone_apart(cell, job, seed):
     zone = 20.0
     programs = build_programs(sliced, parts, cell, mode="concurrent", zone_mm=zone)
     assert {p.phases for p in programs.values()} == {programs["kinova"].phases} and programs["kinova"].phases >= 2
-    spans = execute(programs, random.Random(seed))
-    planes = {p.arm.name: p.planes for p in parts}
-
-    def dist(name, seg):
-        pts = np.array([seg.start, seg.end])
-        return float(min((pts @ np.asarray(n) - off).min() for n, off in planes[name]))
-
-    a = [(t0, t1, dist("kinova", s)) for t0, t1, s in spans["kinova"]]
-    b = [(t0, t1, dist("ur10", s)) for t0, t1, s in spans["ur10"]]
-    b.sort()
-    starts = np.array([x[0] for x in b])
-    overlaps = 0
-    for t0, t1, da in a:
-        for j in range(int(np.searchsorted(starts, t1)) - 1, -1, -1):
-            u0, u1, db = b[j]
-            if u1 <= t0:
-                if u0 < t0 - 10.0:
-                    break
-                continue
-            overlaps += 1
-            assert da + db >= zone - 1e-6, "moves %.1f and %.1f mm from the seam at the same time" % (da, db)
-    assert overlaps > 0            # the arms do work at the same time
+    arms = [p.arm for p in parts]
+    spans = execute(programs, random.Random(seed), home_positions_mm(cell, arms))
+    planes = seam_planes(parts)
+    counts, slack = closest_across(spans, planes, {k: zone for k in planes}, park_positions_mm(cell, arms))
+    assert counts["kinova", "ur10"] > 100                 # the arms do work at the same time
+    assert slack["kinova", "ur10"] >= -1e-6, "nozzles %.1f mm nearer than the zone" % -slack["kinova", "ur10"]
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -160,7 +210,9 @@ def test_concurrent_programs_never_deadlock_and_barriers_hold(cell, job, seed):
     for prog in programs.values():
         waits = [decode(l[2:]) for l in prog.lines if l.startswith(";@A9")]
         k = prog.phases
-        assert len(waits) >= 4 * k and all(isinstance(w, WaitFor) and w.robot == prog.arm.id for w in waits)
+        # an arm waits (for its neighbour's approach) before every phase that moves it
+        # towards the seam: k - 1 phases in each of the 2 layers of 4 it sweeps towards it
+        assert len(waits) == 2 * (k - 1) and all(isinstance(w, WaitFor) and w.robot == prog.arm.id for w in waits)
         assert [w.line for w in waits] == sorted(w.line for w in waits)
 
 
@@ -214,3 +266,166 @@ def test_short_travels_are_not_retracted():
     assert w.lines[-1].startswith("G0 X0.500 Y0.500") and len(w.lines) == 2
     w.travel_to((10.0, 0.5, 0.2))           # longer: retract, lift, move, lower, unretract
     assert w.lines[2].startswith("G1 E-0.8") and w.lines[-1].startswith("G1 E0.8") and len(w.lines) == 7
+
+
+# ------------------------------------------------------------ N arms
+def _box(tmp_path_factory, name, dims):
+    import trimesh
+    path = tmp_path_factory.mktemp("models") / ("%s.stl" % name)
+    m = trimesh.creation.box(dims)
+    m.apply_translation((0.0, 0.0, dims[2] / 2))
+    m.export(str(path))
+    return str(path)
+
+
+#: layouts of 3, 4 and 4-of-8 arms: cell, arms (None: all), model box (mm)
+LAYOUTS = {
+    "three_arms": ("config/cells/three_arms.yaml", None, (160.0, 50.0, 0.6)),      # three around a point
+    "four_arms": ("config/cells/four_arms.yaml", None, (140.0, 120.0, 0.4)),       # 2 x 2, diagonals meet
+    "beam_row": ("config/cells/eight_arms_beam.yaml",                              # a row, alternate sides
+                 ["kinova_3", "ur10_4", "ur10_5", "kinova_6"], (1300.0, 30.0, 0.4)),
+}
+
+
+@pytest.fixture(scope="module")
+def n_arm_jobs(tmp_path_factory):
+    from ambots.coordinate import seam_zones_for
+    from ambots.job import prepare_model, slice_parts, split
+    out = {}
+    for key, (path, names, dims) in LAYOUTS.items():
+        c = load_cell(path)
+        arms = [c.arm(n) for n in names] if names else list(c.arms)
+        mesh = prepare_model(_box(tmp_path_factory, key, dims), c)
+        parts = split(mesh, c, arms)
+        sliced = slice_parts(parts)
+        parts = [p for p in parts if p.arm.name in sliced]
+        arms = [p.arm for p in parts]
+        programs = build_programs(sliced, parts, c)
+        out[key] = (c, parts, sliced, programs, seam_zones_for(c, arms, parts))
+    return out
+
+
+@pytest.mark.parametrize("layout,seed", [(k, s) for k in LAYOUTS for s in range(2)])
+def test_n_arm_programs_keep_every_pair_a_zone_apart_whatever_the_timing(n_arm_jobs, layout, seed):
+    """Three arms around a point, four in the corners (diagonal neighbours
+    meet only at the centre) and a row along a beam: executed with random
+    durations and the firmware's reporting, no deadlock, and every two arms
+    whose work comes within their zone of each other keep their nozzles the
+    zone apart across the plane between them, waiting and parking included
+    (only the simultaneous departure from the home poses is left out)."""
+    from ambots.coordinate import _read_layers, adjacent_arms
+    c, parts, sliced, programs, zones = n_arm_jobs[layout]
+    arms = [p.arm for p in parts]
+    planes = seam_planes(parts)
+    read = {a.name: _read_layers(sliced[a.name], a.name) for a in arms}
+    adjacent = adjacent_arms(arms, read, planes, zones)
+    spans = execute(programs, random.Random(seed), home_positions_mm(c, arms))
+    counts, slack = closest_across(spans, planes, zones, park_positions_mm(c, arms))
+    pairs = [(a.name, b.name) for i, a in enumerate(arms) for b in arms[i + 1:] if b.name in adjacent[a.name]]
+    assert pairs and all(counts[p] > 0 for p in pairs)
+    for p in pairs:
+        assert slack[p] >= -0.01, "%s and %s: nozzles %.2f mm nearer than the zone" % (p + (-slack[p],))
+    # the arms do work at the same time: the busiest moment has more than one arm printing
+    moves = sorted((t0, t1) for sp in spans.values() for t0, t1, _, _, k in sp if k == "move")
+    ends, busiest = [], 0
+    for t0, t1 in moves:
+        ends = [e for e in ends if e > t0] + [t1]
+        busiest = max(busiest, len(ends))
+    assert busiest >= 2
+
+
+def test_n_arm_layouts_use_the_schedule_their_adjacency_needs(n_arm_jobs):
+    """Three around a point and four in the corners (diagonal pairs adjacent
+    through the centre) are not two-colourable: a scheduled timeline; a row
+    is: banded sweeps."""
+    from ambots.coordinate import _read_layers, adjacent_arms
+    for layout, scheduled in (("three_arms", True), ("four_arms", True), ("beam_row", False)):
+        c, parts, sliced, programs, zones = n_arm_jobs[layout]
+        arms = [p.arm for p in parts]
+        read = {a.name: _read_layers(sliced[a.name], a.name) for a in arms}
+        adjacent = adjacent_arms(arms, read, seam_planes(parts), zones)
+        if layout == "four_arms":
+            assert adjacent["kinova1"] >= {"kinova2", "ur10_1", "ur10_2"}       # the diagonal too
+        if layout == "beam_row":
+            assert adjacent == {"kinova_3": {"ur10_4"}, "ur10_4": {"kinova_3", "ur10_5"},
+                                "ur10_5": {"ur10_4", "kinova_6"}, "kinova_6": {"ur10_5"}}
+        assert all(("scheduled" in p.lines[2]) == scheduled for p in programs.values())
+
+
+def test_every_wait_names_a_line_the_other_arm_reports(n_arm_jobs, job, cell):
+    """A firmware reports its line at an ;@A3 (that line) or at the first of
+    a run of ;@A9 lines after a move (the line before): a wait for any other
+    line would last until some later report, and two arms could wait for
+    each other (the deadlock of the first three-arm trial)."""
+    sets = [programs for _, _, _, programs, _ in n_arm_jobs.values()]
+    sets.append(build_programs(job[1], job[0], cell, zone_mm=20.0))
+    for programs in sets:
+        by_id = {p.arm.id: p for p in programs.values()}
+        for prog in programs.values():
+            for line in prog.lines:
+                if not line.startswith(";@A9"):
+                    continue
+                w = decode(line[2:])
+                other = by_id[w.other].lines
+                target = other[w.line - 1]
+                reported = target.startswith(";@A3") or (
+                    not target.startswith(";@") and w.line < len(other) and other[w.line].startswith(";@A9"))
+                assert reported, "R%d waits for line %d of R%d: %r" % (w.robot, w.line, w.other, target)
+
+
+def test_seam_planes_name_the_arm_across_each_plane():
+    """Each part's plane j bounds it against the arm ``neighbours[j]`` (its
+    normal points from that arm's base to the part's own); with a part left
+    out (an arm with nothing to print) the other planes keep their arms."""
+    from ambots.partition import arm_sites_mm
+    c = load_cell("config/cells/four_arms.yaml")
+    model = m3.Manifold.cube([160, 120, 2]).translate([-80, -60, 0])
+    parts = partition(model, c)
+    sites = dict(zip([a.name for a in c.arms], arm_sites_mm(c, c.arms)))
+    for part in parts:
+        assert sorted(part.neighbours) == sorted(a.name for a in c.arms if a.name != part.arm.name)
+        for (n, _), other in zip(part.planes, part.neighbours):
+            u = sites[part.arm.name] - sites[other]
+            assert np.allclose(np.asarray(n)[:2], u / np.linalg.norm(u))
+    full = seam_planes(parts)
+    some = seam_planes([p for p in parts if p.arm.name != "ur10_1"])
+    assert len(full) == 12 and len(some) == 6 and not any("ur10_1" in k for k in some)
+    for key, (n, o) in some.items():
+        assert np.allclose(n, full[key][0]) and o == pytest.approx(full[key][1])
+
+
+@pytest.mark.parametrize("path", ["config/cells/kinova_ur10.yaml", "config/cells/three_arms.yaml",
+                                  "config/cells/four_arms.yaml", "config/cells/eight_arms_beam.yaml"])
+def test_park_positions_are_clear_of_the_bed_and_reachable(path):
+    """Every arm parks outside the bed, above the printable height, on its
+    own side (nearer its base than the bed is), nozzle down within reach."""
+    from ambots.model import arm_kinematics
+    from ambots.partition import arm_sites_mm
+    from ambots.workspace import down_in_base, world_to_base
+    c = load_cell(path)
+    park = park_positions_mm(c, c.arms)
+    sx, sy = c.bed.size[0] * 500.0, c.bed.size[1] * 500.0
+    for arm, site in zip(c.arms, arm_sites_mm(c, c.arms)):
+        x, y, z = park[arm.name]
+        assert abs(x) >= sx + 50.0 or abs(y) >= sy + 50.0, "%s parks over the bed" % arm.name
+        assert z >= c.bed.max_height * 1000.0
+        nearest = np.clip(site, [-sx, -sy], [sx, sy])
+        assert np.linalg.norm(site - (x, y)) < np.linalg.norm(site - nearest)
+        world = np.array([[x, y, z]]) / 1000.0 @ c.bed.pose[:3, :3].T + c.bed.pose[:3, 3]
+        _, ok, _ = arm_kinematics(arm).ik_batch(world_to_base(arm, world), np.asarray(arm.profile.home),
+                                                down_in_base(arm))
+        assert ok[0]
+
+
+def test_sequential_parks_the_waiting_arms_clear_of_the_bed():
+    c = load_cell("config/cells/three_arms.yaml")
+    model = m3.Manifold.cube([150, 40, 0.4]).translate([-75, -20, 0])
+    parts = partition(model, c)
+    sliced = {p.arm.name: square_layers(*np.asarray(p.manifold.bounding_box())[[0, 3, 1, 4]], layers=2)
+              for p in parts}
+    programs = build_programs(sliced, parts, c, mode="sequential")
+    first = [decode(l[2:]) for l in programs["kinova"].lines if l.startswith(";@A7")]
+    assert [m.robot for m in first[:2]] == [2, 3]
+    sx, sy = c.bed.size[0] * 500.0, c.bed.size[1] * 500.0
+    for m in first:
+        assert abs(m.x) > sx or abs(m.y) > sy
