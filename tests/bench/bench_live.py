@@ -8,13 +8,14 @@ second).  Slicing is not timed (the front end slices before it starts the
 arms).  Runs on its own master port so it cannot disturb another ROS."""
 import json
 import os
-import signal
 import subprocess
 import sys
 import tempfile
-import time
 
 import rospkg
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "ros"))
+from faults import cpu_seconds, firmware_processes, start_cell, stop_cell  # noqa: E402
 
 PORT = 11391
 
@@ -25,23 +26,19 @@ def main():
     env["ROS_HOME"] = os.path.join(tmp, "ros_home")
     pkg = rospkg.RosPack().get_path("ambots")
     with open(os.path.join(tmp, "launch.log"), "w") as log:
-        launch = subprocess.Popen(["roslaunch", "-p", str(PORT), "ambots", "both_arms.launch", "speed:=max"],
-                                  stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+        launch = start_cell(PORT, env, log)
     try:
         stats = _watch_print(env, pkg, tmp)
+        cpu = {arm: cpu_seconds(pid) for arm, pid in firmware_processes().items()}
     finally:
-        os.killpg(launch.pid, signal.SIGINT)
-        try:
-            launch.wait(30)
-        except subprocess.TimeoutExpired:
-            os.killpg(launch.pid, signal.SIGKILL)
+        stop_cell(launch)
     first = min(s["stats"]["first_motion_s"] for s in stats["final"].values())
     done = max(s["stats"]["done_s"] for s in stats["final"].values())
     wall = stats["t_done"] - stats["t_printing"]
     for name, s in sorted(stats["final"].items()):
         print("live %-7s %s: %6.0f s printing, %6.0f s idle (simulated); firmware process CPU %.1f s "
               "(whole life)" % (name, s["state"], s["stats"]["print_time_s"], s["stats"]["idle_time_s"],
-                                stats["cpu"].get(name, float("nan"))))
+                                cpu.get(name, float("nan"))))
     print("live speed:=max, demo model, both arms: makespan %.0f s simulated in %.1f s wall "
           "-> %.0f simulated s per wall s (goal >= 200)" % (done - first, wall, (done - first) / wall))
 
@@ -49,7 +46,7 @@ def main():
 def _watch_print(env, pkg, tmp):
     """Start the front end's print job and follow the arms' stats until every arm is done."""
     code = r"""
-import json, os, sys, time, rospy
+import json, sys, time, rospy
 from std_msgs.msg import String
 from ambots.config import default_cell_path, load_cell
 cell = load_cell(default_cell_path())
@@ -68,17 +65,7 @@ while time.monotonic() < deadline and not rospy.is_shutdown():
     if len(last) == len(cell.arms) and all(s["state"] in ("DONE", "ERROR") for s in last.values()) \
             and t_printing[0] is not None:
         t_done = time.monotonic()
-        cpu = {}
-        for pid in os.listdir("/proc"):
-            try:
-                cmd = open("/proc/%s/cmdline" % pid, "rb").read().split(b"\0")
-                stat = open("/proc/%s/stat" % pid).read().rsplit(")", 1)[1].split()
-            except (OSError, IndexError):
-                continue
-            name = [c.decode() for c in cmd if c.startswith(b"__log:=")]
-            if name and b"__name:=firmware" in cmd:
-                cpu[os.path.basename(name[0]).split("-firmware")[0]] = (int(stat[11]) + int(stat[12])) / os.sysconf("SC_CLK_TCK")
-        print(json.dumps({"final": last, "t_printing": t_printing[0], "t_done": t_done, "cpu": cpu}), flush=True)
+        print(json.dumps({"final": last, "t_printing": t_printing[0], "t_done": t_done}), flush=True)
         break
     time.sleep(0.005)
 """

@@ -69,10 +69,8 @@ def run_print(tmp, port, model, faults="", kill_after=None, slowdown="1.0", seed
     out = os.path.join(tmp, "out")
     os.makedirs(out, exist_ok=True)
     logs = {n: open(os.path.join(tmp, n + ".log"), "w") for n in ("launch", "watch", "front_end")}
-    launch = subprocess.Popen(["roslaunch", "-p", str(port), "ambots", "both_arms.launch", "speed:=max",
-                               "faults:=%s" % faults, "state_dir:=%s" % state, "slowdown:=%s" % slowdown,
-                               "retry_timeout:=0.05"],
-                              stdout=logs["launch"], stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    launch = start_cell(port, env, logs["launch"], "faults:=%s" % faults, "state_dir:=%s" % state,
+                        "slowdown:=%s" % slowdown, "retry_timeout:=0.05")
     kills = 0
     try:
         watch = subprocess.Popen([sys.executable, "-c", _WATCH, out, str(timeout)], stdout=subprocess.PIPE,
@@ -90,11 +88,7 @@ def run_print(tmp, port, model, faults="", kill_after=None, slowdown="1.0", seed
         rc = fe.wait(timeout + 60)
         watch.wait(120)
     finally:
-        os.killpg(launch.pid, signal.SIGINT)
-        try:
-            launch.wait(30)
-        except subprocess.TimeoutExpired:
-            os.killpg(launch.pid, signal.SIGKILL)
+        stop_cell(launch)
         for f in logs.values():
             f.close()
     report_path = os.path.join(out, "report.json")
@@ -107,16 +101,45 @@ def run_print(tmp, port, model, faults="", kill_after=None, slowdown="1.0", seed
     return {"front_end_rc": rc, "report": report, "journals": journals, "kills": kills, "tmp": tmp}
 
 
-def _firmware_pid(arm):
+def start_cell(port, env, log, *args):
+    """``roslaunch -p port ambots both_arms.launch speed:=max args...`` in its
+    own process group (its own master on ``port``), output to ``log``."""
+    return subprocess.Popen(["roslaunch", "-p", str(port), "ambots", "both_arms.launch", "speed:=max", *args],
+                            stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+
+
+def stop_cell(launch):
+    """SIGINT the launch's process group (SIGKILL if it is not gone in 30 s)."""
+    os.killpg(launch.pid, signal.SIGINT)
+    try:
+        launch.wait(30)
+    except subprocess.TimeoutExpired:
+        os.killpg(launch.pid, signal.SIGKILL)
+
+
+def firmware_processes():
+    """{arm name: pid} of the firmware nodes running on this machine (by
+    their roslaunch command line: ``__name:=firmware``, log ``<arm>-firmware-N.log``)."""
+    out = {}
     for pid in os.listdir("/proc"):
         try:
             cmd = open("/proc/%s/cmdline" % pid, "rb").read().split(b"\0")
         except OSError:
             continue
-        if b"__name:=firmware" in cmd and any(c.startswith(b"__log:=") and (b"/%s-firmware" % arm.encode()) in c
-                                              for c in cmd):
-            return int(pid)
-    return None
+        logs = [c.decode() for c in cmd if c.startswith(b"__log:=")]
+        if b"__name:=firmware" in cmd and logs and "-firmware" in logs[0]:
+            out[os.path.basename(logs[0]).split("-firmware")[0]] = int(pid)
+    return out
+
+
+def cpu_seconds(pid):
+    """User + system CPU time (s) of process ``pid`` so far."""
+    stat = open("/proc/%d/stat" % pid).read().rsplit(")", 1)[1].split()
+    return (int(stat[11]) + int(stat[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _firmware_pid(arm):
+    return firmware_processes().get(arm)
 
 
 def _kill_firmware_after(state, arm, seconds, fe):
