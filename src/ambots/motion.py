@@ -232,6 +232,10 @@ class MotionPlanner:
         self.plan_timeout = plan_timeout
         #: > 1 stretches every planned duration (an arm slower than planned)
         self.time_scale = 1.0
+        #: optional (rng, lo, hi): each planned block is stretched by a further
+        #: factor drawn uniformly from [lo, hi] (an arm whose speed varies
+        #: from move to move; timing-robustness tests, ``plan --slow ARM=LO:HI``)
+        self.time_jitter = None
         prof = arm.profile
         self.vmax = np.array([j.velocity for j in prof.joints]) * prof.velocity_scaling
         self.amax = np.array([j.acceleration for j in prof.joints]) * prof.velocity_scaling
@@ -262,6 +266,13 @@ class MotionPlanner:
     def world_to_bed_mm(self, P):
         T = np.linalg.inv(self.cell.bed.pose)
         return (np.asarray(P, dtype=float) @ T[:3, :3].T + T[:3, 3]) / MM
+
+    def _scale(self):
+        """The factor stretching the block being planned."""
+        if self.time_jitter is None:
+            return self.time_scale
+        rng, lo, hi = self.time_jitter
+        return self.time_scale * float(rng.uniform(lo, hi))
 
     # -------------------------------------------------------- segments
     def plan_moves(self, segments, q0):
@@ -369,7 +380,7 @@ class MotionPlanner:
         if K >= 2:
             dq = np.abs(np.diff(Q, axis=0))
             dt[1:] = np.maximum(dt[1:], np.max(dq / self.vmax, axis=1))
-        t = np.cumsum(dt) * self.time_scale
+        t = np.cumsum(dt) * self._scale()
         lines = np.array([s.line for s in segments])[seg_of_iv]
         layers = np.maximum(np.array([s.layer for s in segments]), 0)[seg_of_iv]
         travel = float(L_iv[~extr].sum()) * MM
@@ -407,7 +418,7 @@ class MotionPlanner:
                 return self._still(q0, line, layer, MotionError(line, "no collision-free path: %s" % exc))
             how = "joint" if len(path) == 2 else "ompl"
         path = interpolate(path, 0.05)
-        t = np.asarray(time_parametrize(path, self.vmax, self.amax), dtype=float) * self.time_scale
+        t = np.asarray(time_parametrize(path, self.vmax, self.amax), dtype=float) * self._scale()
         K = len(path)
         tip = self.tip_world(path)
         L = float(np.linalg.norm(np.diff(tip, axis=0), axis=1).sum())

@@ -16,7 +16,10 @@ same way.  The caller
 
 Waiting costs no computation: a waiting arm resumes at the simulated time
 the awaited report was made (or its own clock, if later), so the offline
-simulator's step size does not inflate idle time.
+simulator's step size does not inflate idle time.  That holds also when the
+report is already there when the arm reaches the barrier: the arms' clocks
+are independent, and a report made at a later simulated time than this
+arm's clock holds the arm until then.
 
 States (:class:`~ambots.protocol.ArmState`): IDLE (no chunk or not
 started), PRINTING, PAUSED, WAITING (at an A9 barrier), DONE, ERROR.
@@ -109,6 +112,7 @@ class ArmRunner:
         self.record = record
         self.trace_t: List[np.ndarray] = []
         self.trace_q: List[np.ndarray] = []
+        self._trace_end = -np.inf    #: simulated time of the last waypoint recorded
         self._clear()
 
     # ----------------------------------------------------------- program
@@ -485,12 +489,16 @@ class ArmRunner:
         msg = item.message
         target = getattr(msg, "robot", None)
         if isinstance(msg, WaitFor) and target == self.id:
+            # wait even if the awaited report is already here: advance()
+            # releases the arm at the reporter's clock when it reported
+            # (release_time), at once if that is not later than this arm's
+            # own clock.  Clocks of arms are independent (speed max, the
+            # offline simulator): a report from an arm whose clock is ahead
+            # must not let this arm into the region the other arm left only
+            # at that later moment
             self.done_line = item.line
             self.wait = msg
-            if not self._wait_satisfied():
-                self.state = ArmState.WAITING
-            else:
-                self.wait = None
+            self.state = ArmState.WAITING
             return
         if isinstance(msg, SendPosition):      # ;@A3 R<to>: report (A10 with position) now
             self.done_line = item.line
@@ -560,8 +568,16 @@ class ArmRunner:
             self.beads.append(Bead(b.tip[idx - 1], b.tip[idx], b.e_mm[idx], b.line[idx], b.layer[idx],
                                    self.block_t0 + b.t[idx]))
         if self.record:
-            self.trace_t.append(self.block_t0 + b.t[sl])
-            self.trace_q.append(b.Q[sl])
+            # from the block's first waypoint when the block starts later than
+            # the last waypoint recorded: the pose the arm stood in until then
+            # (at a barrier the arm stands still; without this point the trace,
+            # interpolated, would move it during the wait, towards the block's
+            # first waypoint)
+            t0 = self.block_t0 + b.t[0]
+            sl_rec = slice(k0, k1 + 1) if k0 == 0 and t0 > self._trace_end else sl
+            self._trace_end = self.block_t0 + b.t[k1]
+            self.trace_t.append(self.block_t0 + b.t[sl_rec])
+            self.trace_q.append(b.Q[sl_rec])
 
     def _end_block(self):
         b = self.block

@@ -48,24 +48,33 @@ class SimResult:
 
 
 def simulate(programs, cell, dt=2.0, max_time=10 * 24 * 3600.0, planner_kw=None, slow=None,
-             planner_cls=None, runner_cls=None):
+             planner_cls=None, runner_cls=None, seed=0):
     """Run the programs of a job to completion.
 
     ``programs``: {arm name: :class:`~ambots.coordinate.ArmProgram`};
     ``dt``: the simulated step (s) between message exchanges (the runners
     keep exact time inside a step and wake exactly when a report arrives);
     ``slow``: optional {arm name: factor} stretching an arm's motion (a
-    firmware that runs slower than planned); ``planner_cls``/``runner_cls``:
+    firmware that runs slower than planned), or {arm name: (lo, hi)}: each
+    block of the arm's motion (a run of G-code moves between two
+    directives, a park move) stretched by its own factor drawn uniformly
+    from [lo, hi] (an arm whose speed varies from move to move; ``seed``
+    seeds the draws, one generator per arm); ``planner_cls``/``runner_cls``:
     subclasses of :class:`~ambots.motion.MotionPlanner` /
     :class:`~ambots.runner.ArmRunner` to use instead (e.g. ones that record
     more, see :mod:`ambots.export`).  Returns :class:`SimResult`."""
     from ambots.motion import MotionPlanner
     t_wall = time.perf_counter()
     runners = {}
-    for name, prog in programs.items():
+    for i, (name, prog) in enumerate(programs.items()):
         planner = (planner_cls or MotionPlanner)(prog.arm, cell, **(planner_kw or {}))
         if slow and name in slow:
-            planner.time_scale = float(slow[name])
+            factor = slow[name]
+            if np.ndim(factor):
+                lo, hi = (float(v) for v in factor)
+                planner.time_jitter = (np.random.default_rng([int(seed), i]), lo, hi)
+            else:
+                planner.time_scale = float(factor)
         runners[name] = (runner_cls or ArmRunner)(prog.arm, cell, planner=planner, record=True)
     by_id = {r.id: r for r in runners.values()}
     result = SimResult(runners)

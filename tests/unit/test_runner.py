@@ -570,3 +570,50 @@ def test_a_report_overtaken_by_a_newer_one_is_ignored(arm, cell, planner):
     assert r.peers[2].line == 41
     r.advance(r.clock + 40.0)
     assert r.state is not ArmState.WAITING
+
+
+def test_a_barrier_already_satisfied_by_a_later_report_holds_the_arm_until_then(arm, cell, planner):
+    """Clocks of arms are independent (speed max, the offline simulator): the
+    awaited report may be there before the arm reaches its barrier, made at a
+    later simulated time than the arm's own clock.  The arm then waits until
+    that time, as if it had been waiting when the report came: the other arm
+    left the region at that moment, not before."""
+    text = with_barrier(40)
+    free = new_runner(arm, cell, planner)
+    load_and_start(free, text)
+    free.handle(Status(2, ArmState.PRINTING, 0, 40, 50.0, clock=0.0), now=0.0)
+    run(free)
+    assert free.state is ArmState.DONE and free.stats.idle_time_s == 0.0
+
+    r = new_runner(arm, cell, planner)
+    load_and_start(r, text)
+    # line 40 reported by an arm whose clock is at 500 s, long before this arm gets to the barrier
+    r.handle(Status(2, ArmState.PRINTING, 0, 40, 50.0, clock=500.0), now=0.0)
+    t = 0.0
+    while r.state in (ArmState.PRINTING, ArmState.WAITING) and t < 2000.0:
+        t += STEP
+        r.advance(t)
+    assert r.state is ArmState.DONE
+    assert r.stats.idle_time_s == pytest.approx(500.0 - bead_end_before_barrier(free))
+    assert r.stats.done_s == pytest.approx(free.stats.done_s + r.stats.idle_time_s)
+    # nothing after the barrier happened before 500 s
+    t, lines = concat(r.beads, "t"), concat(r.beads, "line")
+    assert t[lines > BARRIER_LINE].min() > 500.0
+    same_beads(r, free)
+    # the executed trace stands still through the wait: it has the pose the arm
+    # waited in at 500 s too, so interpolating it does not move the arm early
+    tt, tq = np.concatenate(r.trace_t), np.concatenate(r.trace_q)
+    assert np.all(np.diff(tt) > 0)
+    t_wait = bead_end_before_barrier(r)
+    i = int(np.searchsorted(tt, t_wait))
+    assert tt[i] == pytest.approx(t_wait) and tt[i + 1] == pytest.approx(500.0)
+    np.testing.assert_array_equal(tq[i + 1], tq[i])
+    for t_mid in (t_wait + 1.0, 250.0, 499.9):
+        q = [np.interp(t_mid, tt, tq[:, j]) for j in range(tq.shape[1])]
+        np.testing.assert_allclose(q, tq[i], atol=1e-12)
+
+
+def bead_end_before_barrier(r):
+    """Time the arm completed the last line before the barrier."""
+    t, lines = concat(r.beads, "t"), concat(r.beads, "line")
+    return float(t[lines < BARRIER_LINE].max())

@@ -13,12 +13,14 @@ def register(sub):
     from ambots.commands.slice import add_job_arguments
     add_job_arguments(p, "out/plan")
     p.add_argument("--slow", action="append", default=[], metavar="ARM=FACTOR",
-                   help="make an arm run FACTOR times slower than planned (e.g. ur10=1.3)")
+                   help="make an arm run FACTOR times slower than planned (e.g. ur10=1.3), or each of its "
+                        "moves by its own random factor in LO..HI (e.g. ur10=0.5:2.5; see --seed)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random factors of --slow ARM=LO:HI")
     p.set_defaults(func=run)
 
 
 def plan_job(model, cell, arms=None, slicer="builtin", mode="concurrent", seam="straight", scale=1.0,
-             slow=None, out=None):
+             slow=None, out=None, seed=0):
     """Run the steps; returns the report dict (and writes files if ``out``)."""
     import json
     import os
@@ -30,7 +32,7 @@ def plan_job(model, cell, arms=None, slicer="builtin", mode="concurrent", seam="
     t0 = time.perf_counter()
     job = run_job(model, cell, arms, slicer, mode, seam, scale)
     t_job = time.perf_counter() - t0
-    result = simulate(job.programs, cell, slow=slow)
+    result = simulate(job.programs, cell, slow=slow, seed=seed)
     motion = check_motion(result, cell)
     rep = report(result, motion, job, wall_time_s=time.perf_counter() - t0)
     rep["slice_wall_time_s"] = round(t_job, 3)
@@ -67,6 +69,8 @@ def deposit_of(result, layer_height_m=None):
 
 
 def run(args):
+    import numpy as np
+
     from ambots.config import default_cell_path, load_cell
     from ambots.errors import ConfigError
 
@@ -76,10 +80,16 @@ def run(args):
     for item in args.slow:
         name, _, factor = item.partition("=")
         try:
-            slow[cell.arm(name).name] = float(factor)
+            lo, colon, hi = factor.partition(":")
+            value = (float(lo), float(hi)) if colon else float(factor)
+            if not all(v > 0 for v in np.atleast_1d(value)):
+                raise ValueError(factor)
+            slow[cell.arm(name).name] = value
         except ValueError:
-            raise ConfigError("--slow", item, "expected ARM=FACTOR with a number, e.g. ur10=1.3") from None
-    rep = plan_job(args.model, cell, arms, args.slicer, args.mode, args.seam, args.scale, slow, args.out)
+            raise ConfigError("--slow", item, "expected ARM=FACTOR or ARM=LO:HI with numbers > 0, "
+                                              "e.g. ur10=1.3 or ur10=0.5:2.5") from None
+    rep = plan_job(args.model, cell, arms, args.slicer, args.mode, args.seam, args.scale, slow, args.out,
+                   args.seed)
     print("%s -> %s: %s, %s mode, makespan %.0f s (simulated), %s, wall %.1f s" % (
         args.model, args.out, rep["cell"], rep["mode"], rep["makespan_s"],
         "finished" if rep["finished"] else "NOT finished: " + rep["reason"], rep["wall_time_s"]))

@@ -1,0 +1,106 @@
+"""Timing robustness of the concurrent schedules, executed by the firmware
+itself (``ambots.sim``: every arm's ArmRunner on one simulated clock) with
+each arm's speed perturbed at random, block by block (every run of G-code
+moves between two directives, every park move stretched by its own factor
+in [lo, hi], ranges drawn per arm): two arms facing each other (banded
+sweeps), three around a point and four in the corners (scheduled
+timeline).  However the timing slips, the barriers absorb it: no arm-arm
+contact, and every two adjacent arms keep their nozzles the pair's seam zone
+apart across the plane between them.
+
+The arms' clocks are independent (as at ``speed max`` live): an arm that
+reaches a barrier whose report is already there, made by an arm whose
+clock is ahead, waits until the report's time; passing at once let the
+arm into the band its neighbour left only later (83.8 mm across a 90.1 mm
+zone, the fault suite's contacts)."""
+import numpy as np
+import pytest
+import trimesh
+
+from ambots import data_path
+from ambots.config import default_cell_path, load_cell
+from ambots.coordinate import _read_layers, adjacent_arms, seam_planes, seam_zones_for
+from ambots.job import run_job
+from ambots.model import arm_kinematics
+from ambots.sim import _resample, _trace, check_motion, simulate
+
+#: cell, model box (mm): small jobs of a few layers
+LAYOUTS = {
+    "two_arms": (None, (160.0, 40.0, 1.2)),                                    # the fault suite's block
+    "three_arms": ("config/cells/three_arms.yaml", (160.0, 50.0, 0.6)),
+    "four_arms": ("config/cells/four_arms.yaml", (140.0, 120.0, 0.4)),
+}
+SEEDS = {"two_arms": (0, 1, 2), "three_arms": (0,), "four_arms": (0,)}
+
+
+@pytest.fixture(scope="module")
+def jobs(tmp_path_factory):
+    out = {}
+    for key, (path, dims) in LAYOUTS.items():
+        cell = load_cell(data_path(*path.split("/")) if path else default_cell_path())
+        box = trimesh.creation.box(dims)
+        box.apply_translation((0.0, 0.0, dims[2] / 2))
+        model = str(tmp_path_factory.mktemp("models") / ("%s.stl" % key))
+        box.export(model)
+        out[key] = (cell, run_job(model, cell))
+    return out
+
+
+def nozzle_slack(result, cell, job, step_s=0.1):
+    """For every two adjacent arms: the smallest (sum of the two nozzles'
+    distances to the plane between them - the pair's zone), mm, over the
+    executed motion sampled every ``step_s`` simulated seconds (joints
+    interpolated between executed waypoints, as the collision check does),
+    while both nozzles are at most at the printable height: the rule is
+    about arms working on the part; home and park poses (and the moves
+    between them and the part) are above it, out of the rule, and covered
+    by the collision check."""
+    parts = [p for p in job.parts if p.arm.name in job.programs]
+    arms = [p.arm for p in parts]
+    planes = seam_planes(parts)
+    zones = seam_zones_for(cell, arms, parts)
+    read = {a.name: _read_layers(job.sliced[a.name], a.name) for a in arms}
+    adjacent = adjacent_arms(arms, read, planes, zones)
+    traces = {n: _trace(r) for n, r in result.runners.items()}
+    grid = np.arange(0.0, max(float(t[-1]) for t, _ in traces.values()) + step_s, step_s)
+    inv = np.linalg.inv(cell.bed.pose)
+    nozzle = {}
+    for name, r in result.runners.items():
+        T = arm_kinematics(r.arm).fk_batch(_resample(*traces[name], grid))
+        world = T[:, :3, 3] @ r.arm.base_pose[:3, :3].T + r.arm.base_pose[:3, 3]
+        nozzle[name] = (world @ inv[:3, :3].T + inv[:3, 3]) * 1000.0
+    top = cell.bed.max_height * 1000.0
+    out = {}
+    for a in adjacent:
+        for b in adjacent[a]:
+            if a < b:
+                (na, oa), (nb, ob) = planes[a, b], planes[b, a]
+                low = (nozzle[a][:, 2] <= top) & (nozzle[b][:, 2] <= top)
+                if low.any():
+                    s = nozzle[a][low] @ na - oa + nozzle[b][low] @ nb - ob
+                    out[a, b] = (float(np.min(s) - zones[a, b]), int(low.sum()))
+    return out
+
+
+@pytest.mark.parametrize("layout,seed", [(k, s) for k in LAYOUTS for s in SEEDS[k]])
+def test_perturbed_speeds_never_bring_two_arms_into_contact(jobs, layout, seed):
+    cell, job = jobs[layout]
+    rng = np.random.default_rng(seed)
+    # each arm its own range: from up to 2.5 times faster to 3 times slower than planned
+    slow = {name: (float(rng.uniform(0.4, 1.0)), float(rng.uniform(1.2, 3.0))) for name in job.programs}
+    base = simulate(job.programs, cell)
+    result = simulate(job.programs, cell, slow=slow, seed=seed)
+    assert base.finished and result.finished, result.reason
+    assert result.makespan_s != pytest.approx(base.makespan_s, rel=0.02)      # the timing did change
+    motion = check_motion(result, cell)
+    assert motion["collisions"] == {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}, motion
+    assert motion["min_clearance_mm"] > 0
+    slack = nozzle_slack(result, cell, job)
+    # two adjacent arms worked on the part at the same time for a while
+    assert slack and max(n for _, n in slack.values()) > 1000, slack
+    for pair, (s, _) in slack.items():
+        assert s >= -0.5, "%s and %s: nozzles %.1f mm nearer than their zone" % (pair + (-s,))
+    # the same deposit as planned: every arm printed all of its program
+    for name, r in result.runners.items():
+        assert sum(float(b.e_mm.sum()) for b in r.beads) == pytest.approx(
+            sum(float(b.e_mm.sum()) for b in base.runners[name].beads), abs=1e-6)
