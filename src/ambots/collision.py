@@ -493,7 +493,7 @@ def seam_zone_mm(cell, arms=None, margin_mm=10.0, direction="facing", **kw):
 
 
 def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n_heights=4, spacing=0.05,
-                  window=0.5, parts=None, part_spacing=0.01):
+                  window=0.5, parts=None, part_spacing=0.01, clearance=None):
     """Seam-zone width (mm) of each pair of arms: the facing protrusions of
     the two arms across the plane between their shares (the line between
     their bases for two arms) plus ``margin_mm``, as :func:`seam_zone`
@@ -522,7 +522,17 @@ def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n
     (m) apart over each part's bounding box, inside its planes, from the
     bed to the part's top), so that the zone fits the poses the job uses.
     ``pairs``: the (name, name) pairs wanted (default: every pair of
-    ``arms``).  Returns {(a, b): mm}, with both orders of every pair."""
+    ``arms``).  Returns {(a, b): mm}, with both orders of every pair.
+
+    ``clearance``: a dict to fill, for the pairs whose seam's normal is more
+    than 15 degrees off the line between their bases (arms beside each other
+    along a beam, on alternate sides: the protrusions, projected on the
+    normal, count each arm's wrist and forearm reaching along the seam's
+    normal although the arms come from opposite sides), with the zone from
+    the clearance of the sampled poses themselves (all capsules): the
+    smallest sum of distances across the seam beyond which every sampled
+    pair keeps ``margin_mm``, plus one grid step (:func:`_clearance_zone`),
+    at most the protrusions' zone."""
     import manifold3d as m3
 
     from ambots.partition import arm_sites_mm, partition
@@ -540,6 +550,7 @@ def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n
         nx, ny = max(n, int(np.ceil(sx / spacing)) + 1), max(n, int(np.ceil(sy / spacing)) + 1)
         u, v = np.meshgrid(np.linspace(-sx / 2, sx / 2, nx), np.linspace(-sy / 2, sy / 2, ny), indexing="ij")
         flat = np.stack([u.ravel(), v.ravel()], axis=1)
+        step_mm = 1000.0 * max(sx / (nx - 1), sy / (ny - 1))
         slab = m3.Manifold.cube([sx * 1000.0, sy * 1000.0, 1.0]).translate([-sx * 500.0, -sy * 500.0, 0.0])
         regions = [(part.planes, cell.bed.max_height, part.neighbours)
                    for part in partition(slab, cell, arms, check_reach=False)]
@@ -560,6 +571,7 @@ def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n
             chunks.append(np.stack([u.ravel(), v.ravel()], axis=1))
             regions.append((part.planes, max(float(hi[2]), 1e-3), list(part.neighbours)))
         flat = np.concatenate(chunks) if chunks else np.zeros((0, 2))
+        step_mm = 1000.0 * part_spacing
     flat_owner = np.full(len(flat), -1)
     for i, (planes, _, _) in enumerate(regions):
         inside = np.all([flat * 1000.0 @ np.asarray(nrm)[:2] - off >= -1e-6 for nrm, off in planes], axis=0)
@@ -638,4 +650,39 @@ def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n
         near = [(p, mine & (d <= window)) for p, mine, d in sides]
         z = margin_mm + sum(float(p[k].max()) * 1000.0 if k.any() else 0.0 for p, k in near)
         out[a, b] = out[b, a] = z
+        if clearance is not None and (ia, ib) in plane_of and (ib, ia) in plane_of:
+            nrm = plane_of[ia, ib][0]
+            across = sites[b] - sites[a]
+            # the protrusions are projected on the seam's normal: tight when the
+            # arms face each other along it, loose when they stand beside each other
+            if abs(float(nrm @ across)) < np.cos(np.radians(15.0)) * np.linalg.norm(nrm) * np.linalg.norm(across):
+                sel = []
+                for (x, ix, other), (_, k) in zip(((a, ia, ib), (b, ib, ia)), near):
+                    nx, ox = plane_of[ix, other]
+                    dist = sampled[x].tips[:, :2] * 1000.0 @ nx - ox
+                    sel.append((sampled[x], np.nonzero(k & (dist < z))[0], dist))
+                zc = _clearance_zone(sel[0], sel[1], z, margin_mm, step_mm)
+                clearance[a, b] = clearance[b, a] = min(z, zc)
     return out
+
+
+def _clearance_zone(side_a, side_b, z_mm, margin_mm, step_mm, chunk=20000):
+    """The smallest zone (mm) that every sampled pair of poses of two arms
+    whose nozzles are at least that far apart across their seam (sum of the
+    two distances) keeps ``margin_mm`` of clearance (all capsules), plus one
+    grid step ``step_mm`` for the poses between the samples; only pairs
+    nearer than ``z_mm`` are looked at.  ``side_*``: (sampled poses, indices
+    of the poses to use, distance (mm) of every pose's nozzle to the seam)."""
+    (sa, ia, da), (sb, ib, db) = side_a, side_b
+    if not len(ia) or not len(ib):
+        return float(margin_mm)
+    S = da[ia][:, None] + db[ib][None, :]
+    I, J = np.nonzero(S < z_mm)
+    worst = -np.inf
+    for k in range(0, len(I), chunk):
+        i, j = ia[I[k:k + chunk]], ib[J[k:k + chunk]]
+        c = capsule_distances(sa.A[i], sa.B[i], sa.body.radii, sb.A[j], sb.B[j], sb.body.radii).min(axis=(1, 2))
+        bad = c < margin_mm / 1000.0
+        if bad.any():
+            worst = max(worst, float(S[I[k:k + chunk], J[k:k + chunk]][bad].max()))
+    return float(margin_mm) if not np.isfinite(worst) else worst + step_mm

@@ -335,7 +335,10 @@ def seam_zones_for(cell, arms, parts=None):
     From the poses on the arms' shares of the whole bed (cached); with
     ``parts`` (a job's), the larger of that and the zone from the poses on
     those parts (the parts' planes can differ from the shares', and two arms
-    whose shares are far apart can get parts that meet)."""
+    whose shares are far apart can get parts that meet), except for pairs of
+    arms beside each other along their seam (a beam's), whose zone is the
+    one the sampled poses on the parts keep clear
+    (``seam_zones_mm(..., clearance=)``)."""
     from ambots.collision import seam_zones_mm
     if len(arms) < 2:
         return {}
@@ -344,8 +347,11 @@ def seam_zones_for(cell, arms, parts=None):
         _ZONES[key] = {k: float(v) for k, v in seam_zones_mm(cell, arms).items()}
     zones = dict(_ZONES[key])
     if parts is not None:
-        for k, v in seam_zones_mm(cell, arms, parts=parts).items():
+        tight = {}
+        for k, v in seam_zones_mm(cell, arms, parts=parts, clearance=tight).items():
             zones[k] = max(zones.get(k, 0.0), float(v))
+        for k, v in tight.items():          # arms beside each other: the poses' own clearance
+            zones[k] = min(zones[k], float(v))
     return zones
 
 
@@ -403,7 +409,7 @@ def _concurrent(arms, read, park, home, n_layers, planes, zones):
     if colour is not None:
         near = {a: [planes[a, b] for b in names if b in adjacent[a]] for a in names}
         zone = max([zones[a, b] for a in names for b in adjacent[a]] or [0.0])
-        return _banded(arms, read, park, n_layers, zone, near, colour, adjacent, home)
+        return _banded(arms, read, park, n_layers, zone, near, colour, adjacent, home, zones)
     return _timeline(arms, read, park, home, n_layers, planes, zones, adjacent)
 
 
@@ -419,9 +425,10 @@ def _report_line(lines, is_wait, target):
 
 
 # ----------------------------------------------------------- banded sweep
-def _split_at_bands(seg, planes, w, k):
+def _split_at_bands(seg, planes, t):
     """Cut a segment where its distance to any seam plane crosses a band
-    boundary (multiples of ``w``); E is shared in proportion to length."""
+    boundary ``t[1:]`` (mm, increasing; band i is [t[i], t[i+1]), the last
+    band the rest); E is shared in proportion to length."""
     a, b = np.array(seg.start, dtype=float), np.array(seg.end, dtype=float)
     if not planes or np.allclose(a, b):
         return [seg]
@@ -431,11 +438,11 @@ def _split_at_bands(seg, planes, w, k):
         if abs(fb - fa) < 1e-12:
             continue
         lo, hi = sorted((fa, fb))
-        for m in range(int(np.floor(lo / w)) + 1, int(np.ceil(hi / w))):
-            if 1 <= m <= k - 1:
-                t = (m * w - fa) / (fb - fa)
-                if 1e-9 < t < 1 - 1e-9:
-                    cuts.append(t)
+        for edge in t[1:]:
+            if lo < edge < hi:
+                u = (edge - fa) / (fb - fa)
+                if 1e-9 < u < 1 - 1e-9:
+                    cuts.append(u)
     if not cuts:
         return [seg]
     ts = [0.0] + sorted(set(cuts)) + [1.0]
@@ -485,13 +492,15 @@ def _order_runs(segs, pos):
     return out
 
 
-def _band_of(segs, planes, w, k):
-    """Band index (S,) of each segment from its midpoint's distance to the nearest seam."""
+def _band_of(segs, planes, t):
+    """Band index (S,) of each segment from its midpoint's distance to the
+    nearest seam; band i is [t[i], t[i+1]) (mm), the last band the rest."""
+    k = len(t)
     if not planes:
         return np.full(len(segs), k - 1)
     mid = np.array([(np.add(s.start, s.end)) / 2.0 for s in segs], dtype=float)
     d = _distance_to_planes(mid, planes).min(axis=1)
-    return np.clip(np.floor(d / w), 0, k - 1).astype(int)
+    return np.clip(np.searchsorted(np.asarray(t), d, side="right") - 1, 0, k - 1).astype(int)
 
 
 def _seg_time(segs):
@@ -503,59 +512,86 @@ def _seg_time(segs):
     return t
 
 
-def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=None):
+#: the estimated makespans (s) and k of the last banded programs, by kind of band edges, for inspection
+_last_bands = None
+#: balanced band edges are used when their estimate is below this share of the equal widths' estimate
+_BALANCED_GAIN = 0.95
+
+
+def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=None, zones=None):
     """Two colours (every seam between adjacent arms separates a colour-0
     from a colour-1 arm).  ``planes[arm]``: the planes (n, o) between the
     arm and its adjacent arms; ``zone_mm``: the largest zone of an adjacent
-    pair.  Only adjacent arms wait for each other.
+    pair; ``zones``: {(a, b): mm} each adjacent pair's own (default: all
+    ``zone_mm``).  Only adjacent arms wait for each other.
 
-    Each arm's work is cut into bands by distance from its nearest seam:
-    band i (0 <= i < k-1) is [i w, (i+1) w) with w >= zone / (k-1), band
-    k-1 the rest (w = the arm's own reach from its nearest seam / k when
-    that is wider, so that the phases balance; each arm has its own w).  In
-    phase i of a layer one colour prints band i while the other prints band
-    k-1-i, so two nozzles across a seam are always at least
-    i w_a + (k-1-i) w_b >= zone apart.  Directions alternate with the layer (even
-    layers: colour 0 moves away from the seam, colour 1 towards it; odd
-    layers the reverse), so no arm ever crosses another's path at a layer
-    change.  Between phases the arm moving away first travels to its next
-    band (its *approach*, reported with an A3), and the arm moving towards
-    the seam waits for that (an A9 on the approach line) before it
+    Each arm's work is cut into k bands by distance from its nearest seam:
+    band i is [t[i], t[i+1]) (t[0] = 0), band k-1 the rest; each arm has its
+    own boundaries t.  In phase i of a layer one colour prints band i while
+    the other prints band k-1-i, so two adjacent arms a, b are always at
+    least t_a[i] + t_b[k-1-i] apart across their seam, which the boundaries
+    keep >= the pair's zone for every i.  Boundaries: either equal widths w
+    >= zone / (k-1) (w = the arm's reach from its nearest seam / k when that
+    is wider), or each arm's own work split into k equal shares, raised
+    where a pair needs it (:func:`_balanced_bounds`; in a row of arms along
+    a beam the parts between two seams reach half as far from their nearest
+    seam as the ones at the ends); ``k`` (2..12) and the kind are chosen to
+    minimise the estimated makespan.  Directions alternate with the layer
+    (even layers: colour 0 moves away from the seam, colour 1 towards it;
+    odd layers the reverse), so no arm ever crosses another's path at a
+    layer change.  Between phases the arm moving away first travels to its
+    next band (its *approach*, reported with an A3), and the arm moving
+    towards the seam waits for that (an A9 on the approach line) before it
     approaches; an arm with no work in its next band still moves there (a
     retreat), so the spacing holds whatever the timing.  That is the only
     wait: an arm moving away only widens the gap, so it goes on at once (it
     can get at most one phase ahead: at the next layer it moves towards the
-    seam and waits).  ``k`` (2..12) is chosen to minimise the estimated
-    makespan."""
+    seam and waits)."""
     names = [a.name for a in arms]
+    if zones is None:
+        zones = {}
+    pair_zone = {(a, b): float(zones.get((a, b), zone_mm)) for a in names for b in adjacent[a]}
     segs_by = {(a.name, k): segs for a in arms for k, segs in read[a.name][1].items()}
-    # choose k on the unsplit segments (midpoint distance, duration), vectorised
+    # choose k and the band edges on the segments cut into pieces of at most
+    # 5 mm (midpoint distance, duration), vectorised: a long line along the
+    # seam's normal (a perimeter along a beam) spreads over many bands
     stats = {}
     for a in arms:
         for layer in range(n_layers):
             segs = segs_by.get((a.name, layer), [])
             if not segs:
                 continue
-            mid = np.array([np.add(s.start, s.end) / 2.0 for s in segs], dtype=float)
-            d = (_distance_to_planes(mid, planes[a.name]).min(axis=1) if planes[a.name]
-                 else np.full(len(segs), np.inf))
+            P0 = np.array([s.start for s in segs], dtype=float)
+            P1 = np.array([s.end for s in segs], dtype=float)
             dur = np.array([_seg_time([s]) for s in segs])
-            stats[a.name, layer] = (d, dur)
-    # each arm's reach from its nearest seam: bands of width far / k (equal
-    # widths, so that the phases balance) unless that is narrower than
-    # zone / (k-1), which keeps the spacing.  Any widths >= zone / (k-1) keep
-    # it, so each arm has its own: in a row of arms a part between two seams
-    # reaches half as far from its nearest seam as one at the end of the row
+            pieces = np.maximum(1, np.ceil(np.linalg.norm(P1 - P0, axis=1) / 5.0)).astype(int)
+            seg = np.repeat(np.arange(len(segs)), pieces)
+            frac = (np.arange(len(seg)) - np.repeat(np.cumsum(pieces) - pieces, pieces) + 0.5) / pieces[seg]
+            mid = P0[seg] + frac[:, None] * (P1 - P0)[seg]
+            d = (_distance_to_planes(mid, planes[a.name]).min(axis=1) if planes[a.name]
+                 else np.full(len(seg), np.inf))
+            stats[a.name, layer] = (d, dur[seg] / pieces[seg])
+    # each arm's reach from its nearest seam
     far = {}
     for a in arms:
         ds = [float(np.max(d[np.isfinite(d)])) for (n, _), (d, _) in stats.items()
               if n == a.name and np.isfinite(d).any()]
         far[a.name] = max(ds or [0.0])
+    work = {}
+    for a in arms:
+        ds = [stats[a.name, layer] for layer in range(n_layers) if (a.name, layer) in stats]
+        d = np.concatenate([x for x, _ in ds]) if ds else np.zeros(0)
+        dur = np.concatenate([y for _, y in ds]) if ds else np.zeros(0)
+        work[a.name] = (d[np.isfinite(d)], dur[np.isfinite(d)])
 
-    def widths(k):
-        return {a.name: max(max(zone_mm, 1e-3) / (k - 1), far[a.name] / k) for a in arms}
+    def uniform(k):
+        out = {}
+        for a in arms:
+            w = max(max(zone_mm, 1e-3) / (k - 1), far[a.name] / k)
+            out[a.name] = np.arange(k) * w
+        return out
 
-    def estimate(k, w):
+    def estimate(k, t):
         est = 0.0
         for layer in range(n_layers):
             phase_t = np.zeros(k)
@@ -563,35 +599,44 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=
                 if (a.name, layer) not in stats:
                     continue
                 d, dur = stats[a.name, layer]
-                band = np.clip(np.floor(d / w[a.name]), 0, k - 1).astype(int)
+                band = np.clip(np.searchsorted(t[a.name], d, side="right") - 1, 0, k - 1)
                 per_band = np.bincount(band, weights=dur, minlength=k)
                 phases = np.array([_phase_of(b, colour[a.name], layer, k) for b in range(k)])
                 np.maximum.at(phase_t, phases, per_band)
             est += phase_t.sum() + k * 0.5          # a barrier costs about half a second
         return est
 
-    best = None
+    best = {}
     for k in range(2, 13):
-        w = widths(k)
-        est = estimate(k, w)
-        if best is None or est < best[0] - 1e-9:
-            best = (est, k, w)
-    k, w = best[1], best[2]
+        for kind, t in (("uniform", uniform(k)), ("balanced", _balanced_bounds(names, work, adjacent, pair_zone, k))):
+            if t is None:
+                continue
+            est = estimate(k, t)
+            if kind not in best or est < best[kind][0] - 1e-9:
+                best[kind] = (est, k, t)
+    global _last_bands
+    _last_bands = {kind: (est, k) for kind, (est, k, _) in best.items()}
+    # balanced bands only when clearly better: at a band edge of its own work
+    # an arm waits more often than the estimate counts
+    kind = "balanced" if "balanced" in best and best["balanced"][0] < _BALANCED_GAIN * best["uniform"][0] else "uniform"
+    k, bounds = best[kind][1], best[kind][2]
     steps = {}
     for a in arms:
         for layer in range(n_layers):
             segs = [p for s in segs_by.get((a.name, layer), [])
-                    for p in _split_at_bands(s, planes[a.name], w[a.name], k)]
-            band = _band_of(segs, planes[a.name], w[a.name], k) if segs else np.zeros(0, dtype=int)
+                    for p in _split_at_bands(s, planes[a.name], bounds[a.name])]
+            band = _band_of(segs, planes[a.name], bounds[a.name]) if segs else np.zeros(0, dtype=int)
             for b in range(k):
                 steps[a.name, layer, _phase_of(b, colour[a.name], layer, k)] = (
                     b, [s for s, bb in zip(segs, band) if bb == b])
-    parks_first, park_waits = _banded_start(arms, names, steps, planes, adjacent, home, n_layers, k, w, zone_mm)
+    parks_first, park_waits = _banded_start(arms, names, steps, planes, adjacent, home, n_layers, k, bounds,
+                                            pair_zone)
     writers, approach_end, slots, park_report, park_slots = {}, {}, {}, {}, {}
     for a in arms:
         w_ = _Writer()
-        for line in _header(a, "concurrent", ["; seam zone %.1f mm, %d band(s) of %.1f mm per layer, colour %d"
-                                              % (zone_mm, k, w[a.name], colour[a.name])]):
+        for line in _header(a, "concurrent", ["; seam zone %.1f mm, %d band(s) per layer from %s mm, colour %d"
+                                              % (zone_mm, k, " ".join("%.1f" % v for v in bounds[a.name]),
+                                                 colour[a.name])]):
             w_.emit(line)
         slots[a.name] = []
         if parks_first[a.name]:
@@ -621,7 +666,7 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=
                 if first is not None:
                     w_.travel_to(first.start)
                 elif p > 0 and not towards and w_.pos is not None:
-                    w_.travel_to(_retreat(w_.pos, planes[a.name], band, w[a.name]))
+                    w_.travel_to(_retreat(w_.pos, planes[a.name], band, bounds[a.name]))
                 if p > 0 and not towards and any(n in adjacent[a.name] for n in names):
                     # tell the neighbours (A10 with position, via the hub) that the approach is done
                     other = next(o for o in arms if o.name in adjacent[a.name])
@@ -644,7 +689,7 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=
     return programs
 
 
-def _banded_start(arms, names, steps, planes, adjacent, home, n_layers, k, w, zone):
+def _banded_start(arms, names, steps, planes, adjacent, home, n_layers, k, bounds, zones):
     """How the banded programs start.  An arm leaves home at once for its
     first band, unless it has no work in the first phase (it would wait at
     home) or its home is in the way of an adjacent arm's first step (home
@@ -666,8 +711,8 @@ def _banded_start(arms, names, steps, planes, adjacent, home, n_layers, k, w, zo
     for a in arms:
         for i, b in enumerate(nb[a.name]):
             j = nb[b].index(a.name)
-            lo = first[b][2] * w[b] if first[b] is not None else np.inf
-            if home_d[a.name][i] + min(lo, home_d[b][j]) < zone - 1e-9:
+            lo = bounds[b][first[b][2]] if first[b] is not None else np.inf
+            if home_d[a.name][i] + min(lo, home_d[b][j]) < zones[a.name, b] - 1e-9:
                 parks_first[a.name] = True
                 waits[b].append(a.name)
     for a in arms:
@@ -686,21 +731,63 @@ def _arm_id(arms, name):
     return next(a.id for a in arms if a.name == name)
 
 
-def _retreat(pos, planes, band, w):
-    """A point on the same side as ``pos`` just inside ``band`` (mm)."""
+def _retreat(pos, planes, band, t):
+    """A point on the same side as ``pos`` just inside ``band`` (mm; band i
+    is [t[i], t[i+1]))."""
     p = np.array(pos, dtype=float)
     if not planes:
         return tuple(p)
     d = _distance_to_planes(p[None], planes)[0]
     j = int(np.argmin(d))
     n = np.asarray(planes[j][0], dtype=float)
-    want = band * w + min(2.0, w / 4)
+    width = t[band + 1] - t[band] if band + 1 < len(t) else 8.0
+    want = t[band] + min(2.0, width / 4)
     if d[j] >= want:
         return tuple(p)
     q = p + n * (want - d[j])
     return (float(q[0]), float(q[1]), float(p[2]))
 
 
+def _balanced_bounds(names, work, adjacent, zones, k):
+    """Band boundaries {arm: (k,) mm} that split each arm's work (``work``:
+    {arm: (distance to the nearest seam (S,), duration (S,))}) into k equal
+    shares, then raised until every adjacent pair a, b keeps
+    t_a[i] + t_b[k-1-i] >= its zone for every i (t[0] = 0 stays; raising a
+    boundary only moves work to lower bands, and only widens the gaps)."""
+    t = {}
+    for n in names:
+        d, dur = work[n]
+        if not len(d) or dur.sum() <= 0:
+            t[n] = np.zeros(k)
+            continue
+        order = np.argsort(d)
+        cum = np.cumsum(dur[order]) / dur.sum()
+        q = [0.0] + [float(d[order][min(int(np.searchsorted(cum, i / k)), len(d) - 1)]) for i in range(1, k)]
+        t[n] = np.maximum.accumulate(np.maximum(np.array(q), 0.0))
+    for _ in range(10 * k * len(names) + 10):
+        changed = False
+        for a in names:
+            for b in adjacent[a]:
+                z = zones[a, b]
+                for i in range(k):
+                    j = k - 1 - i
+                    short = z - (t[a][i] + t[b][j])
+                    if short <= 1e-9:
+                        continue
+                    changed = True
+                    if i == 0:
+                        t[b][j] += short
+                    elif j == 0:
+                        t[a][i] += short
+                    else:
+                        t[a][i] += short / 2
+                        t[b][j] += short / 2
+                t[a] = np.maximum.accumulate(t[a])
+                t[b] = np.maximum.accumulate(t[b])
+        if not changed:
+            break
+    ok = all(t[a][i] + t[b][k - 1 - i] >= zones[a, b] - 1e-6 for a in names for b in adjacent[a] for i in range(k))
+    return t if ok else None
 
 
 # ----------------------------------------------------------- timeline

@@ -5,11 +5,13 @@ the bed: part i holds the points p of the model with
 
     |p - s_i|^2 - w_i  <=  |p - s_j|^2 - w_j    for every other arm j,
 
-s_i being arm i's base projected onto the bed.  Every boundary is a vertical
-plane perpendicular to the line between two arms, so each arm gets the side
-of the model that faces it, for any number of arms and any layout (two arms
+s_i being arm i's base projected onto the bed (on a beam, clipped to the
+bed: :func:`seam_sites_mm`).  Every boundary is a vertical plane
+perpendicular to the line between two sites, so each arm gets the side of
+the model that faces it, for any number of arms and any layout (two arms
 facing each other get one plane, as in the original project; four in the
-corners get a cross; a row of arms along a beam gets parallel planes).  The
+corners get a cross; a row of arms along a beam gets parallel planes across
+it, also when the arms stand on alternate sides).  The
 weights w_i move the planes until the arms' estimated print times balance.
 The cuts are manifold3d half-space trims, so the parts are closed volumes
 whose union is the model.
@@ -29,7 +31,11 @@ import numpy as np
 from ambots.errors import MeshError
 from ambots.units import MM, m_to_mm
 
-__all__ = ["Part", "PrintEstimate", "partition", "arm_sites_mm", "estimate_print_time"]
+__all__ = ["Part", "PrintEstimate", "partition", "arm_sites_mm", "seam_sites_mm", "estimate_print_time"]
+
+#: a bed whose long side is at least this many times its short side is a beam:
+#: the power diagram's sites are clipped to it (:func:`seam_sites_mm`)
+BEAM_ASPECT = 3.0
 
 
 @dataclass(frozen=True)
@@ -85,6 +91,22 @@ def arm_sites_mm(cell, arms):
     return m_to_mm(pts[:, :2])
 
 
+def seam_sites_mm(cell, arms):
+    """The sites of the power diagram, (N, 2) mm in the bed frame: the arms'
+    bases projected onto the bed (:func:`arm_sites_mm`), on a beam (a bed at
+    least :data:`BEAM_ASPECT` times as long as it is wide) clipped to the
+    bed.  Arms on alternate sides of a beam then get seams across the beam
+    (the line between two clipped sites runs almost along it) instead of
+    seams slanted along it: two nozzles a given distance apart across a
+    slanted seam are 2-3 times that far apart along the beam, so the seam
+    zone would cover most of each part."""
+    sites = arm_sites_mm(cell, arms)
+    sx, sy = m_to_mm(np.asarray(cell.bed.size[:2], dtype=float))
+    if max(sx, sy) >= BEAM_ASPECT * min(sx, sy):
+        sites = np.clip(sites, [-sx / 2, -sy / 2], [sx / 2, sy / 2])
+    return sites
+
+
 def _planes(sites, weights, i, shift=0.0):
     """Half-spaces (n, offset) of power cell i, one per other site j in the
     order of ``sites`` (j != i); ``shift`` (mm) moves each plane outward (into
@@ -127,7 +149,7 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
     if len(arms) == 1:
         parts = [Part(arms[0], model, [], estimate_print_time(model, est), [])]
     else:
-        sites = arm_sites_mm(cell, arms)
+        sites = seam_sites_mm(cell, arms)
         lo, hi = np.array(model.bounding_box()[:2]), np.array(model.bounding_box()[3:5])
         centre = (lo + hi) / 2
         size2 = float(np.sum((hi - lo) ** 2))

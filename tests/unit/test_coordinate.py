@@ -73,11 +73,13 @@ def test_bands_split_moves_that_cross_them(cell):
         pieces = [s for s in parse_gcode_text(prog.text) if type(s) is Segment and s.extrude and s.start != s.end]
         assert len(pieces) > 1 and sum(s.e for s in pieces) == pytest.approx(3.0)
         (n, off), = [(np.asarray(n), o) for n, o in next(p.planes for p in parts if p.arm.name == name)]
-        w = 30.0 / (k - 1)
+        # the band boundaries, from the header: "... k band(s) per layer from t0 t1 ... mm"
+        t = [float(v) for v in prog.lines[2].split(" from ")[1].split(" mm")[0].split()]
+        assert len(t) == k and t[0] == 0.0 and all(t[i] + t[k - 1 - i] >= 30.0 - 1e-6 for i in range(k))
         for s in pieces:       # every piece lies inside one band
             d = sorted((float(n @ np.array(s.start) - off), float(n @ np.array(s.end) - off)))
-            band = min(int(np.floor((d[0] + d[1]) / 2 / w)), k - 1)
-            assert d[0] >= band * w - 1e-6 and (band == k - 1 or d[1] <= (band + 1) * w + 1e-6)
+            band = int(np.searchsorted(t, (d[0] + d[1]) / 2, side="right")) - 1
+            assert d[0] >= t[band] - 1e-6 and (band == k - 1 or d[1] <= t[band + 1] + 1e-6)
 
 
 def execute(programs, rng, home=None):

@@ -4,7 +4,8 @@ each arm's speed perturbed at random, block by block (every run of G-code
 moves between two directives, every park move stretched by its own factor
 in [lo, hi], ranges drawn per arm): two arms facing each other (banded
 sweeps), three around a point and four in the corners (scheduled
-timeline).  However the timing slips, the barriers absorb it: no arm-arm
+timeline), four in a row on alternate sides of a beam (banded sweeps, each
+arm with its own band edges).  However the timing slips, the barriers absorb it: no arm-arm
 contact, and every two adjacent arms keep their nozzles the pair's seam zone
 apart across the plane between them.
 
@@ -24,25 +25,27 @@ from ambots.job import run_job
 from ambots.model import arm_kinematics
 from ambots.sim import _resample, _trace, check_motion, simulate
 
-#: cell, model box (mm): small jobs of a few layers
+#: cell, model box (mm), arms (None: the cell's): small jobs of a few layers
 LAYOUTS = {
-    "two_arms": (None, (160.0, 40.0, 1.2)),                                    # the fault suite's block
-    "three_arms": ("config/cells/three_arms.yaml", (160.0, 50.0, 0.6)),
-    "four_arms": ("config/cells/four_arms.yaml", (140.0, 120.0, 0.4)),
+    "two_arms": (None, (160.0, 40.0, 1.2), None),                              # the fault suite's block
+    "three_arms": ("config/cells/three_arms.yaml", (160.0, 50.0, 0.6), None),
+    "four_arms": ("config/cells/four_arms.yaml", (140.0, 120.0, 0.4), None),
+    "beam_row": ("config/cells/eight_arms_beam.yaml", (1300.0, 20.0, 0.4),   # four in a row, alternate sides
+                 ["kinova_3", "ur10_4", "ur10_5", "kinova_6"]),
 }
-SEEDS = {"two_arms": (0, 1, 2), "three_arms": (0,), "four_arms": (0,)}
+SEEDS = {"two_arms": (0, 1, 2), "three_arms": (0,), "four_arms": (0,), "beam_row": (0,)}
 
 
 @pytest.fixture(scope="module")
 def jobs(tmp_path_factory):
     out = {}
-    for key, (path, dims) in LAYOUTS.items():
+    for key, (path, dims, names) in LAYOUTS.items():
         cell = load_cell(data_path(*path.split("/")) if path else default_cell_path())
         box = trimesh.creation.box(dims)
         box.apply_translation((0.0, 0.0, dims[2] / 2))
         model = str(tmp_path_factory.mktemp("models") / ("%s.stl" % key))
         box.export(model)
-        out[key] = (cell, run_job(model, cell))
+        out[key] = (cell, run_job(model, cell, [cell.arm(n) for n in names] if names else None))
     return out
 
 
