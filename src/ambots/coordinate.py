@@ -48,6 +48,7 @@ info`` reads them.  Slicer output is sanitised first: A-series lines in it
 are stripped and reported.
 """
 import bisect
+import math
 from dataclasses import dataclass, field
 from typing import Dict, List
 
@@ -352,7 +353,10 @@ def seam_zones_for(cell, arms, parts=None):
             zones[k] = max(zones.get(k, 0.0), float(v))
         for k, v in tight.items():          # arms beside each other: the poses' own clearance
             zones[k] = min(zones[k], float(v))
-    return zones
+    # rounded up to 0.01 mm: the last bits of the sums vary with how BLAS
+    # threads split them, and band edges cut segments: the same job must get
+    # the very same programs every time
+    return {k: math.ceil(v * 100.0 - 1e-6) / 100.0 for k, v in zones.items()}
 
 
 def _finish(w, arm, park):
@@ -635,7 +639,7 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=
     for a in arms:
         w_ = _Writer()
         for line in _header(a, "concurrent", ["; seam zone %.1f mm, %d band(s) per layer from %s mm, colour %d"
-                                              % (zone_mm, k, " ".join("%.1f" % v for v in bounds[a.name]),
+                                              % (zone_mm, k, " ".join("%.3f" % v for v in bounds[a.name]),
                                                  colour[a.name])]):
             w_.emit(line)
         slots[a.name] = []
