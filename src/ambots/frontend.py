@@ -149,12 +149,14 @@ class ReliableLink:
                 self._cv.notify_all()
             return
         with self._cv:
-            delivery = self.receiver.receive(msg)
-            if delivery.execute:
-                self._inbox.append(msg)
-                self._cv.notify_all()
-        if delivery.ack is not None:
-            self._transmit(encode(delivery.ack))
+            deliveries = self.receiver.deliver(msg)
+            for m, delivery in deliveries:
+                if delivery.execute:
+                    self._inbox.append(m)
+            self._cv.notify_all()
+        for _, delivery in deliveries:
+            if delivery.ack is not None:
+                self._transmit(encode(delivery.ack))
 
     def tick(self):
         """Transmit again what is due; queue an :class:`Undelivered` for

@@ -192,17 +192,20 @@ class Hub:
             return [_refusal(text, caller, str(exc))]
         except ProtocolError as exc:
             return [_refusal(text, caller, "malformed: " + exc.message)]
-        delivery = self.receiver.receive(msg, src.id)
-        posts = [Post(src.inbox, encode(delivery.ack))] if delivery.ack else []
-        if delivery.verdict is Verdict.STALE:
-            reason = ("Q%d is older than the last %d numbers of node %d: it may have been "
-                      "executed already" % (msg.seq, self.receiver.window, src.id))
-            posts.append(_refusal(text, caller, reason))
-        if delivery.execute:
-            try:
-                posts += self._route(msg, src, now)
-            except _Refused as exc:
-                posts.append(_refusal(text, caller, str(exc)))
+        posts = []
+        for m, delivery in self.receiver.deliver(msg, src.id):     # m and what it releases, in order
+            m_text = text if m is msg else encode(m)
+            if delivery.ack:
+                posts.append(Post(src.inbox, encode(delivery.ack)))
+            if delivery.verdict is Verdict.STALE:
+                reason = ("Q%d is older than the last %d numbers of node %d: it may have been "
+                          "executed already" % (m.seq, self.receiver.window, src.id))
+                posts.append(_refusal(m_text, caller, reason))
+            if delivery.execute:
+                try:
+                    posts += self._route(m, src, now)
+                except _Refused as exc:
+                    posts.append(_refusal(m_text, caller, str(exc)))
         return posts
 
     def tick(self, now):

@@ -442,7 +442,8 @@ def test_link_numbers_retries_until_acked_and_gives_up():
     assert link.pending() == 1
     now[0] = 10.0
     link.tick()
-    assert link.poll() == [Undelivered("A1 R1 S1000 Q42", 3)] and link.pending() == 0
+    # as last transmitted: after Q41, which was then still unacknowledged
+    assert link.poll() == [Undelivered("A1 R1 S1000 Q42 B41", 3)] and link.pending() == 0
 
 
 def test_link_acknowledges_forwarded_reports_and_drops_duplicates():

@@ -146,6 +146,19 @@ def test_reordered_messages_are_each_forwarded_once(hub):
     assert len(forwarded) == 4
 
 
+def test_a_reordered_chain_is_forwarded_in_the_order_sent(hub):
+    """The front end's A1 overtakes its A5 on the way: the hub holds the A1
+    (no ack, nothing forwarded) until the A5 is in, then forwards both in
+    order, the A1 carrying B = the hub's number of the A5."""
+    held = hub.handle("A1 R2 S1000 Q8 B7", FRONT_END, 0.0)
+    assert held == []
+    posts = hub.handle("A5 R2 C1 S1000 Q7\nG1 X1 Y2 E0.1", FRONT_END, 0.0)
+    assert by_topic(posts, FE_IN) == ["A8 R1000 Q7 S0", "A8 R1000 Q8 S0"]
+    load, start = (decode(t) for t in by_topic(posts, UR10_IN))
+    assert (type(load).__name__, type(start).__name__) == ("LoadChunk", "Start")
+    assert (load.seq, start.seq, start.after) == (FIRST_Q, FIRST_Q + 1, FIRST_Q)
+
+
 def test_older_than_the_window_is_acked_and_reported(cell):
     hub = Hub(cell, receiver=Receiver(topics.HUB_ID, window=4))
     hub.handle("A1 R1 S1000 Q10", FRONT_END, 0.0)

@@ -276,19 +276,21 @@ class FirmwareNode:
         self._wake.set()
 
     def _receive(self, message, data):
-        """One numbered command from the inbox (loop thread, lock held):
-        returns the A8 to send once the step is checkpointed (or None)."""
+        """One numbered command from the inbox (loop thread, lock held), and
+        the commands it releases (held behind it for order): returns the
+        A8s to send once the step is checkpointed."""
         with self._io:
-            delivery = self.receiver.receive(message)
-        if delivery.verdict is Verdict.NEW:
-            self._apply(message)
-        elif delivery.verdict is Verdict.STALE:
-            rospy.logwarn("%s firmware: Q%d of node %d is older than the window: not executed",
-                          self.arm.name, message.seq, message.sender or 0)
-        elif delivery.verdict is Verdict.UNNUMBERED:
-            rospy.logwarn("%s firmware: ignored unnumbered %r (everything comes numbered through the hub)",
-                          self.arm.name, data[:80])
-        return delivery.ack
+            deliveries = self.receiver.deliver(message)
+        for m, delivery in deliveries:
+            if delivery.verdict is Verdict.NEW:
+                self._apply(m)
+            elif delivery.verdict is Verdict.STALE:
+                rospy.logwarn("%s firmware: Q%d of node %d is older than the window: not executed",
+                              self.arm.name, m.seq, m.sender or 0)
+            elif delivery.verdict is Verdict.UNNUMBERED:
+                rospy.logwarn("%s firmware: ignored unnumbered %r (everything comes numbered through the hub)",
+                              self.arm.name, data[:80])
+        return [d.ack for _, d in deliveries if d.ack is not None]
 
     # ------------------------------------------------------------- the loop
     def _apply(self, message):
@@ -319,11 +321,9 @@ class FirmwareNode:
         acks = []
         while True:
             try:
-                ack = self._receive(*self._commands.get_nowait())
+                acks += self._receive(*self._commands.get_nowait())
             except queue.Empty:
                 break
-            if ack is not None:
-                acks.append(ack)
         release = r.release_time()
         if self.speed is None and (r.state is ArmState.PRINTING or release is not None):
             # as fast as possible: the arm's clock runs ahead of the wall; a
