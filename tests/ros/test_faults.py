@@ -1,8 +1,9 @@
 """The fault suite (real roscore, hub, firmware nodes, front end): a clean
 print of a small two-arm job is the reference; then the same job with
 20 % drop + 10 % duplication + reordering on every hub topic (seeded),
-with the Kinova's firmware killed (SIGKILL) mid-print and respawned, and
-with the UR10 running 30 % slower than planned.  Every run must finish
+with the Kinova's firmware killed (SIGKILL) mid-print and respawned, with
+the hub killed (respawned) and the front end killed (a new one follows the
+job with --follow), and with the UR10 running 30 % slower than planned.  Every run must finish
 with the same deposit (per arm: same beads in the same order under faults;
 per G-code line the same filament and bead length after a kill), and no
 contact in the executed motion."""
@@ -87,6 +88,24 @@ def test_a_firmware_killed_mid_print_resumes_from_its_checkpoint(tmp_path, model
         # the same path as the clean run, line by line (the cut line is split differently)
         missing, extra, de, dl = compare_lines(clean["journals"]["kinova"], run["journals"]["kinova"])
         assert not missing and not extra and de < 1e-5 and dl < 2e-5, (de, dl)
+
+
+@pytest.mark.parametrize("seed", [5])
+def test_the_hub_and_the_front_end_killed_mid_print_lose_nothing(tmp_path, model, clean, seed):
+    """kill -9 of the hub (respawned: it resumes from its state file) and of
+    the front end (a new one attaches with --follow) during a faulty print."""
+    run = run_print(tmp_path, 11615, model, faults=FAULTS % seed, kill_hub_after=0.3,
+                    replace_front_end_after=0.8)
+    assert run["kills"] == 2, run["tmp"]
+    assert run["front_end_rc"] == 0, run["tmp"]          # the replacement saw every arm DONE
+    rep = run["report"]
+    assert rep["finished"] and rep["collisions"] == NO_CONTACT, rep
+    launch_log = open(os.path.join(run["tmp"], "launch.log")).read()
+    assert "communication hub: resumed from its checkpoint" in launch_log
+    fe_log = open(os.path.join(run["tmp"], "front_end.log")).read()
+    assert "attached to the job" in fe_log and "print finished: every arm is DONE" in fe_log
+    assert rep["hub_progress"]["hub"]["resumed"] is True
+    _check_deposit(clean, run)
 
 
 def test_an_arm_30_percent_slower_than_planned_never_collides(tmp_path, model, clean):
