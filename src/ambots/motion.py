@@ -163,6 +163,9 @@ class Block:
     extrude_m: float = 0.0
     error: Optional[MotionError] = None      #: set if the arm cannot go past the block's end
     planned: str = "cartesian"               #: or "joint" / "ompl" for joint-space moves
+    #: set on a wait in place because only other arms' current poses block the
+    #: way (the runner plans the move again after it): why, e.g. "goal in collision"
+    blocked: Optional[str] = None
 
     def __post_init__(self):
         if self.line_end is None:
@@ -218,7 +221,11 @@ class MotionPlanner:
     sample_mm : first sampling step along a move (refined where needed)
     is_valid : optional ``f(Q (N, n)) -> bool (N,)`` saying which joint
         vectors are free of collisions right now (bed, part, other arms);
-        travel and joint moves are checked with it and re-planned by OMPL
+        travel and joint moves are checked with it and re-planned by OMPL.
+        If it has an attribute ``static`` (the same check without the
+        other arms), a move that only the other arms' current poses block
+        becomes a wait in place of ``blocked_wait_s`` s (``Block.blocked``)
+        after which the runner plans it again, instead of an error.
     """
 
     def __init__(self, arm, cell, kin=None, tolerance_mm=DEFAULT_TOLERANCE_MM, sample_mm=10.0,
@@ -230,6 +237,7 @@ class MotionPlanner:
         self.sample = sample_mm * MM
         self.is_valid = is_valid
         self.plan_timeout = plan_timeout
+        self.blocked_wait_s = 0.5         #: s to wait before planning a blocked move again
         #: > 1 stretches every planned duration (an arm slower than planned)
         self.time_scale = 1.0
         prof = arm.profile
@@ -284,7 +292,7 @@ class MotionPlanner:
                 segments = segments[1:]
             else:
                 lead = self.joint_move_to(start, q0, line=first.line, layer=max(first.layer, 0))
-            if lead.error is not None or not segments:
+            if lead.error is not None or lead.blocked is not None or not segments:
                 return lead
             q0 = lead.Q[-1]
         body = self._cartesian(segments, q0)
@@ -404,6 +412,11 @@ class MotionPlanner:
             try:
                 path = planner.plan(q0, q1, timeout=self.plan_timeout)
             except PlanningError as exc:
+                if self._clear_without_others(q0, q1):
+                    # only other arms, where they are now, are in the way: they move on
+                    block = self.dwell(q0, self.blocked_wait_s, line, layer)
+                    block.blocked = str(exc)
+                    return block
                 return self._still(q0, line, layer, MotionError(line, "no collision-free path: %s" % exc))
             how = "joint" if len(path) == 2 else "ompl"
         path = interpolate(path, 0.05)
@@ -413,6 +426,21 @@ class MotionPlanner:
         L = float(np.linalg.norm(np.diff(tip, axis=0), axis=1).sum())
         return Block(np.asarray(t, dtype=float), path, tip, np.full(K, line), np.full(K, layer),
                      np.zeros(K, dtype=bool), np.zeros(K), travel_m=L, planned=how)
+
+    def _clear_without_others(self, q0, q1):
+        """Whether q0 -> q1 could be planned if the other arms were not
+        where they are now (``is_valid.static``: the same check without
+        moving obstacles; False when ``is_valid`` has none)."""
+        from ambots.planning import JointPlanner, PlanningError
+        static = getattr(self.is_valid, "static", None)
+        if static is None:
+            return False
+        try:
+            JointPlanner(self.kin.lower, self.kin.upper, static, resolution=0.02).plan(
+                q0, q1, timeout=self.plan_timeout)
+        except PlanningError:
+            return False
+        return True
 
     def _still(self, q, line, layer, error=None):
         return Block(np.zeros(1), np.asarray(q, dtype=float)[None], self.tip_world(np.asarray(q)[None]),

@@ -40,7 +40,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ambots.errors import GCodeError
-from ambots.motion import Directive, MotionPlanner, Pause as Dwell, read_program, FILAMENT_AREA_MM2
+from ambots.motion import Directive, MotionError, MotionPlanner, Pause as Dwell, read_program, FILAMENT_AREA_MM2
 from ambots.protocol import (Ack, ArmState, ClearChunk, ErrorReport, LoadChunk, MoveTo, Pause, Resume,
                              SendPosition, Start, Status, WaitFor, MAX_TEXT, decode, encode)
 from ambots.units import MM
@@ -91,7 +91,14 @@ class ArmRunner:
     q0 : initial joint vector (default: the profile's home)
     now : initial simulated time (s)
     record : keep every executed waypoint (``trace``) for offline analysis
+
+    A move that only the other arms' current poses block (``Block.blocked``,
+    see :class:`~ambots.motion.MotionPlanner`) is waited for and planned
+    again, for at most :attr:`max_blocked_s` simulated s in a row; then it
+    is an error like an unreachable point.
     """
+
+    max_blocked_s = 60.0
 
     def __init__(self, arm, cell, planner=None, q0=None, now=0.0, record=False):
         self.arm, self.cell = arm, cell
@@ -129,6 +136,7 @@ class ArmRunner:
         self.reported_line = -1
         self._ahead = {}             #: item index -> (start joints, block) planned ahead
         self._block_src = None       #: where the current block came from (for checkpoints)
+        self.blocked_s = 0.0         #: s waited so far for other arms to clear the way
 
     @property
     def percent(self):
@@ -568,6 +576,18 @@ class ArmRunner:
         self.stats.extrude_m += b.extrude_m
         self.stats.travel_m += b.travel_m
         self.block = None
+        if b.blocked is not None and self._block_src is not None and self._block_src[0] == "item":
+            # only other arms were in the way: plan the same item again, up to max_blocked_s
+            self.blocked_s += b.duration
+            self.stats.print_time_s -= b.duration      # a wait, not motion
+            self.stats.idle_time_s += b.duration
+            if self.blocked_s <= self.max_blocked_s:
+                self.idx = self._block_src[1]
+                self._ahead.pop(self.idx, None)
+                return
+            b.error = MotionError(int(b.line[0]), "other arms blocked the way for %.0f s: %s"
+                                  % (self.blocked_s, b.blocked))
+        self.blocked_s = 0.0
         if b.error is not None:
             self.stats.ik_failures += 1
             self.state = ArmState.ERROR

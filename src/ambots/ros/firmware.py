@@ -167,9 +167,15 @@ class CollisionCheck:
     def update(self, name, q):
         self.q_other[name] = np.asarray(q, dtype=float)
 
+    def static(self, Q):
+        """The same check without the other arms (they move on; the planner
+        waits for them instead of failing)."""
+        Q = np.atleast_2d(np.asarray(Q, dtype=float))
+        return bed_clearance(self.body, Q, self.cell) >= 0.0
+
     def __call__(self, Q):
         Q = np.atleast_2d(np.asarray(Q, dtype=float))
-        ok = bed_clearance(self.body, Q, self.cell) >= 0.0
+        ok = self.static(Q)
         for name, q in list(self.q_other.items()):
             if ok.any():
                 ok &= clearance_between(self.body, Q, self.others[name], np.tile(q, (len(Q), 1))) >= self.margin
