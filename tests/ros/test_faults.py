@@ -41,20 +41,16 @@ def _same_beads(a, b):
 
 
 def _check_deposit(clean, run, arms=("kinova", "ur10")):
-    """Every extrusion of each arm's program printed exactly once; and, where
-    the front end built the same program as in the clean run, the very same
-    beads in the same order.  (Known defect, issue 6 note: under CPU load the
-    built-in slicer does not always give byte-identical G-code for the same
-    part, so two runs of one job may differ in program.)"""
-    same = 0
+    """The front end built the same programs as in the clean run (the job
+    pipeline is deterministic), every extrusion of each arm's program was
+    printed exactly once, and the beads are the clean run's, in the same
+    order."""
     for arm in arms:
         path = os.path.join(run["tmp"], "job", arm + ".gcode")
+        assert open(path).read() == open(os.path.join(clean["tmp"], "job", arm + ".gcode")).read(), arm
         missing, extra, diff = coverage(run["journals"][arm], path)
         assert not missing and not extra and diff < 1e-5, (arm, missing[:5], extra[:5], diff)
-        if open(path).read() == open(os.path.join(clean["tmp"], "job", arm + ".gcode")).read():
-            _same_beads(clean["journals"][arm], run["journals"][arm])
-            same += 1
-    return same
+        _same_beads(clean["journals"][arm], run["journals"][arm])
 
 
 @pytest.mark.parametrize("seed", [7])
@@ -82,12 +78,12 @@ def test_a_firmware_killed_mid_print_resumes_from_its_checkpoint(tmp_path, model
     # arm, which waited at its barriers, laid the clean run's beads (same program)
     _check_deposit(clean, run, arms=("ur10",))
     path = os.path.join(run["tmp"], "job", "kinova.gcode")
+    assert open(path).read() == open(os.path.join(clean["tmp"], "job", "kinova.gcode")).read()
     missing, extra, diff = coverage(run["journals"]["kinova"], path)
     assert not missing and not extra and diff < 1e-5, (missing[:5], extra[:5], diff)
-    if open(path).read() == open(os.path.join(clean["tmp"], "job", "kinova.gcode")).read():
-        # the same path as the clean run, line by line (the cut line is split differently)
-        missing, extra, de, dl = compare_lines(clean["journals"]["kinova"], run["journals"]["kinova"])
-        assert not missing and not extra and de < 1e-5 and dl < 2e-5, (de, dl)
+    # the same path as the clean run, line by line (the cut line is split differently)
+    missing, extra, de, dl = compare_lines(clean["journals"]["kinova"], run["journals"]["kinova"])
+    assert not missing and not extra and de < 1e-5 and dl < 2e-5, (de, dl)
 
 
 @pytest.mark.parametrize("seed", [5])
