@@ -114,3 +114,20 @@ def test_an_arm_30_percent_slower_than_planned_never_collides(tmp_path, model, c
     assert rep["arms"]["ur10"]["print_time_s"] > 1.2 * clean["report"]["arms"]["ur10"]["print_time_s"]
     assert rep["arms"]["kinova"]["idle_time_s"] > clean["report"]["arms"]["kinova"]["idle_time_s"]
     _check_deposit(clean, run)
+
+
+def test_the_demo_print_under_faults_is_the_clean_demo(tmp_path_factory):
+    """The issue's own scenario: the demo model, both arms, 20 % drop + 10 %
+    duplication + reordering on every hub topic: it completes, and each arm
+    lays the clean run's beads in the same order."""
+    from ambots import data_path
+    from ambots.job import DEMO_MODEL
+    model = data_path(DEMO_MODEL)
+    clean = run_print(tmp_path_factory.mktemp("demo_clean"), 11616, model)
+    assert clean["front_end_rc"] == 0 and clean["report"]["finished"], clean["tmp"]
+    run = run_print(tmp_path_factory.mktemp("demo_faults"), 11617, model, faults=FAULTS % 7)
+    assert run["front_end_rc"] == 0, run["tmp"]
+    rep = run["report"]
+    assert rep["finished"] and rep["collisions"] == NO_CONTACT, rep
+    assert rep["hub_progress"]["faults"]["in"]["dropped"] > 50, rep["hub_progress"]["faults"]
+    _check_deposit(clean, run)
