@@ -48,7 +48,7 @@ def test_every_command_goes_to_its_arm_with_the_hubs_numbering(hub, command):
                        else command + " S1000 Q7", FRONT_END, now=0.0)
     assert posts[0] == Post(FE_IN, "A8 R1000 Q7 S0")                 # ack to the sender first
     [forwarded] = by_topic(posts, KINOVA_IN)
-    assert replace(decode(forwarded), sender=None, seq=None) == decode(command)
+    assert replace(decode(forwarded), sender=None, seq=None, after=None) == decode(command)
     assert (decode(forwarded).sender, decode(forwarded).seq) == (0, FIRST_Q)
     assert len(posts) == 2
 
