@@ -140,35 +140,33 @@ def stop_cell(launch):
         os.killpg(launch.pid, signal.SIGKILL)
 
 
+def _command_lines():
+    """(pid, argv as a list of bytes) of every process on this machine."""
+    for pid in os.listdir("/proc"):
+        try:
+            yield int(pid), open("/proc/%s/cmdline" % pid, "rb").read().split(b"\0")
+        except (OSError, ValueError):
+            continue
+
+
 def node_processes(name):
     """{arm name (or "hub"): pid} of the running ``firmware`` or
     ``communication_hub`` nodes on this machine (by their roslaunch command
     line: ``__name:=<name>``, log ``[<arm>-]<name>-N.log``)."""
     if name == "firmware":
         return firmware_processes()
-    out = {}
-    for pid in os.listdir("/proc"):
-        try:
-            cmd = open("/proc/%s/cmdline" % pid, "rb").read().split(b"\0")
-        except OSError:
-            continue
-        if ("__name:=%s" % name).encode() in cmd:
-            out["hub" if name == "communication_hub" else name] = int(pid)
-    return out
+    return {"hub" if name == "communication_hub" else name: pid for pid, cmd in _command_lines()
+            if ("__name:=%s" % name).encode() in cmd}
 
 
 def firmware_processes():
     """{arm name: pid} of the firmware nodes running on this machine (by
     their roslaunch command line: ``__name:=firmware``, log ``<arm>-firmware-N.log``)."""
     out = {}
-    for pid in os.listdir("/proc"):
-        try:
-            cmd = open("/proc/%s/cmdline" % pid, "rb").read().split(b"\0")
-        except OSError:
-            continue
+    for pid, cmd in _command_lines():
         logs = [c.decode() for c in cmd if c.startswith(b"__log:=")]
         if b"__name:=firmware" in cmd and logs and "-firmware" in logs[0]:
-            out[os.path.basename(logs[0]).split("-firmware")[0]] = int(pid)
+            out[os.path.basename(logs[0]).split("-firmware")[0]] = pid
     return out
 
 

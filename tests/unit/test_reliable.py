@@ -164,29 +164,37 @@ def test_memory_is_the_window_per_sender():
 
 # --- both ends over a bad channel ------------------------------------------------------
 
+def _bad_channel(rng, tx, deliver):
+    """Transmit everything ``tx`` has pending until it is all acknowledged:
+    30 % of messages and of acks are lost, the rest arrive shuffled and
+    sometimes twice.  ``deliver(outgoing)`` -> [(message, Delivery)]."""
+    in_flight, now = list(tx.pending), 0.0
+    while tx.pending:
+        rng.shuffle(in_flight)
+        for out in in_flight:
+            for _ in range(rng.choice((1, 1, 2))):
+                if rng.random() < 0.3:
+                    continue
+                for _m, d in deliver(out):
+                    if d.ack is not None and rng.random() >= 0.3:
+                        tx.acknowledge(d.ack, acker=out.destination)
+        now += 0.1
+        in_flight = tx.due(now)
+
+
 def test_exactly_once_over_a_lossy_reordering_channel():
-    """30% of messages and of acks are lost, the rest arrive in random order
-    and sometimes twice; every message takes effect exactly once."""
-    rng = random.Random(4)
+    """Every message takes effect exactly once over the bad channel."""
     sender, receiver = Sender(0, first_seq=MAX_U32 - 20, max_tries=None), Receiver(1)
     executed = []
     for i in range(200):
         sender.send(Status(1, 1, i, 0, 0.0), destination=1, now=0.0)
-    in_flight = [o.message for o in sender.pending]
-    now = 0.0
-    while sender.pending:
-        rng.shuffle(in_flight)
-        for msg in in_flight:
-            for _ in range(rng.choice((1, 1, 2))):
-                if rng.random() < 0.3:
-                    continue
-                d = receiver.receive(msg)
-                if d.execute:
-                    executed.append(msg.layer)
-                if rng.random() >= 0.3:
-                    sender.acknowledge(d.ack)
-        now += 0.1
-        in_flight = [o.message for o in sender.due(now)]
+
+    def deliver(out):
+        d = receiver.receive(out.message)
+        if d.execute:
+            executed.append(out.message.layer)
+        return [(out.message, d)]
+    _bad_channel(random.Random(4), sender, deliver)
     assert sorted(executed) == list(range(200))
 
 
@@ -255,9 +263,8 @@ def test_b_needs_q():
 
 
 def test_in_order_exactly_once_over_a_lossy_reordering_channel():
-    """Two destinations share one sender's numbers; 30% of messages and acks
-    are lost, the rest arrive shuffled and sometimes twice: each destination
-    executes every message of its own once, in the order sent."""
+    """Two destinations share one sender's numbers; over the bad channel each
+    destination executes every message of its own once, in the order sent."""
     rng = random.Random(11)
     tx = Sender(0, first_seq=MAX_U32 - 50, max_tries=None)
     rxs = {1: Receiver(1), 2: Receiver(2)}
@@ -265,19 +272,10 @@ def test_in_order_exactly_once_over_a_lossy_reordering_channel():
     for i in range(300):
         tx.send(Status(1, 1, i, 0, 0.0), destination=rng.choice((1, 2)), now=0.0)
     sent = {d: [o.message.layer for o in tx.pending if o.destination == d] for d in (1, 2)}
-    in_flight = list(tx.pending)
-    now = 0.0
-    while tx.pending:
-        rng.shuffle(in_flight)
-        for out in in_flight:
-            for _ in range(rng.choice((1, 1, 2))):
-                if rng.random() < 0.3:
-                    continue
-                for m, d in rxs[out.destination].deliver(out.message):
-                    if d.execute:
-                        executed[out.destination].append(m.layer)
-                    if d.ack is not None and rng.random() >= 0.3:
-                        tx.acknowledge(d.ack, acker=out.destination)
-        now += 0.1
-        in_flight = tx.due(now)
+
+    def deliver(out):
+        got = rxs[out.destination].deliver(out.message)
+        executed[out.destination].extend(m.layer for m, d in got if d.execute)
+        return got
+    _bad_channel(rng, tx, deliver)
     assert executed == sent
