@@ -116,6 +116,9 @@ class ArmRunner:
         self.record = record
         self.trace_t: List[np.ndarray] = []
         self.trace_q: List[np.ndarray] = []
+        #: optional ``f(block, t0, k)``: told of every block the arm starts (k = 0) or resumes (at
+        #: waypoint k) at simulated time ``t0`` (a driver streaming the motion to a controller)
+        self.on_motion = None
         self._clear()
 
     # ----------------------------------------------------------- program
@@ -137,6 +140,9 @@ class ArmRunner:
         self._ahead = {}             #: item index -> (start joints, block) planned ahead
         self._block_src = None       #: where the current block came from (for checkpoints)
         self.blocked_s = 0.0         #: s waited so far for other arms to clear the way
+        #: (block, waypoint): a pause stops there, not at the end of the line being executed
+        #: (set by a driver that has sent the motion up to later than that line's end)
+        self.pause_at = None
 
     @property
     def percent(self):
@@ -171,6 +177,12 @@ class ArmRunner:
 
     def _error(self, line, text):
         self.outbox.append((self.clock, ErrorReport(self.id, int(line), str(text)[:MAX_TEXT])))
+
+    def _begin(self, block, t0):
+        """``block`` starts at simulated time ``t0``."""
+        self.block, self.block_t0, self.k = block, float(t0), 0
+        if self.on_motion is not None and block is not None:
+            self.on_motion(block, self.block_t0, 0)
 
     # ----------------------------------------------------------- commands
     def handle(self, msg, now=None):
@@ -255,6 +267,8 @@ class ArmRunner:
         self.state = ArmState.WAITING if self.wait is not None else ArmState.PRINTING
         if self.block is not None:       # continue the block where it stopped
             self.block_t0 = now - self.block.t[self.k]
+            if self.on_motion is not None:
+                self.on_motion(self.block, self.block_t0, self.k)
         self.clock = now
         self._report()
 
@@ -288,8 +302,8 @@ class ArmRunner:
             return
         self.after_block = self.state
         self._block_src = ["manual", float(msg.x), float(msg.y), float(msg.z)]
-        self.block, self.block_t0, self.k = block, now, 0
         self.state = ArmState.PRINTING
+        self._begin(block, now)
 
     # ----------------------------------------------------------- checkpoints
     def checkpoint(self):
@@ -361,7 +375,7 @@ class ArmRunner:
                 rest = _remaining(item.segments, cur["line"], cur["line_done"], self.nozzle_mm())
                 self.block = self.planner.plan_moves(rest, self.q) if rest else None
         self._block_src = list(src)
-        self.block_t0, self.k = self.clock, 0
+        self._begin(self.block, self.clock)
 
     # ----------------------------------------------------------- time
     def _wait_satisfied(self):
@@ -456,7 +470,7 @@ class ArmRunner:
         b = self.block
         self.stats.plans[b.planned] = self.stats.plans.get(b.planned, 0) + 1
         self.stats.max_path_error_mm = max(self.stats.max_path_error_mm, b.max_deviation_mm)
-        self.block_t0, self.k = self.clock, 0
+        self._begin(b, self.clock)
         if self.stats.first_motion_s is None:
             self.stats.first_motion_s = self.clock
         return True
@@ -507,9 +521,8 @@ class ArmRunner:
         if target == self.id and isinstance(msg, MoveTo):
             target_base = self.planner.bed_mm_to_base(np.array([[msg.x, msg.y, msg.z]]))[0]
             self._block_src = ["item", self.idx - 1]
-            self.block = self.planner.joint_move_to(target_base, self.q, line=item.line,
-                                                    layer=self.layer_of_line[item.line])
-            self.block_t0, self.k = self.clock, 0
+            self._begin(self.planner.joint_move_to(target_base, self.q, line=item.line,
+                                                   layer=self.layer_of_line[item.line]), self.clock)
             self.stats.plans[self.block.planned] = self.stats.plans.get(self.block.planned, 0) + 1
             return
         if target == self.id:
@@ -529,8 +542,7 @@ class ArmRunner:
         kk = min(max(kk, self.k), K - 1)
         stop = None
         if self.pause_requested:
-            ends = np.nonzero(b.line_end[self.k + 1:])[0]
-            j = self.k + 1 + int(ends[0]) if len(ends) else K - 1
+            j = self._pause_point(b)
             if j <= kk:
                 kk, stop = j, True
         if kk > self.k:
@@ -538,6 +550,7 @@ class ArmRunner:
             self.k = kk
         if stop:
             self.pause_requested = False
+            self.pause_at = None
             self.clock = self.block_t0 + b.t[self.k]
             if self.k == K - 1:
                 self._end_block()
@@ -550,6 +563,14 @@ class ArmRunner:
             return self.state is ArmState.PRINTING
         self.clock = now
         return False
+
+    def _pause_point(self, b):
+        """The waypoint where a pause requested now stops the block ``b``:
+        :attr:`pause_at` if set for it, else the end of the line being executed."""
+        if self.pause_at is not None and self.pause_at[0] is b and self.pause_at[1] > self.k:
+            return int(self.pause_at[1])
+        ends = np.nonzero(b.line_end[self.k + 1:])[0]
+        return self.k + 1 + int(ends[0]) if len(ends) else len(b.t) - 1
 
     def _execute(self, b, k0, k1):
         """Waypoints k0 -> k1 of block ``b`` are reached."""
