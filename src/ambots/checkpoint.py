@@ -25,9 +25,31 @@ import os
 
 import numpy as np
 
-__all__ = ["StateStore", "RECORD"]
+__all__ = ["StateStore", "RECORD", "write_json", "read_json"]
 
 RECORD = 10      #: float64 values per journal record
+
+
+def write_json(file, doc, durable=False):
+    """Replace ``file`` with ``doc`` as JSON, atomically (a temporary file
+    and ``os.replace``: a reader sees the old or the new whole file, never a
+    part); ``durable`` fsyncs before the rename (power cuts)."""
+    tmp = file + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(doc, f, separators=(",", ":"))
+        if durable:
+            f.flush()
+            os.fsync(f.fileno())
+    os.replace(tmp, file)
+
+
+def read_json(file):
+    """The JSON document in ``file``, or None if it is missing or unreadable."""
+    try:
+        with open(file) as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        return None
 
 
 class StateStore:
@@ -44,13 +66,7 @@ class StateStore:
 
     # ------------------------------------------------------------ files
     def _write_json(self, file, doc):
-        tmp = file + ".tmp"
-        with open(tmp, "w") as f:
-            json.dump(doc, f, separators=(",", ":"))
-            if self.durable:
-                f.flush()
-                os.fsync(f.fileno())
-        os.replace(tmp, file)
+        write_json(file, doc, self.durable)
 
     def save_chunk(self, identity, text):
         self._write_json(self.chunk_file, {"identity": list(identity), "text": text})
@@ -68,11 +84,7 @@ class StateStore:
 
     def load(self):
         """The last checkpoint, or None if there is none (or it is unreadable)."""
-        try:
-            with open(self.checkpoint_file) as f:
-                return json.load(f)
-        except (OSError, ValueError):
-            return None
+        return read_json(self.checkpoint_file)
 
     # ------------------------------------------------------------ journal
     def new_journal(self):

@@ -37,6 +37,7 @@ A *clearance* is a surface-to-surface distance: positive apart, zero touching,
 negative overlapping (minus the depth of the deepest segment point inside the
 other body, minus the radius).  Self-collision is not modelled.
 """
+import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from typing import Dict, NamedTuple, Tuple
@@ -489,7 +490,12 @@ def seam_zone_mm(cell, arms=None, margin_mm=10.0, direction="facing", **kw):
     if direction not in ("facing", "any"):
         raise ValueError("direction must be 'facing' or 'any', got %r" % (direction,))
     z = seam_zone(cell, arms, margin_mm, **kw)
-    return z.facing_mm if direction == "facing" else z.any_mm
+    width = z.facing_mm if direction == "facing" else z.any_mm
+    # rounded up to 0.01 mm: the sweep's last bits vary with how the BLAS
+    # threads split its sums (1e-13 mm between two runs on a loaded
+    # machine), and the seam bands cut segments at multiples of this width,
+    # so the same job must get the very same width every time
+    return math.ceil(width * 100.0 - 1e-6) / 100.0
 
 
 def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n_heights=4, spacing=0.05,

@@ -20,7 +20,13 @@ from ambots import data_path
 from ambots.errors import ConfigError
 
 __all__ = ["ArmProfile", "ArmInstance", "Bed", "Cell", "load_arm_profile", "load_cell",
-           "pose_matrix", "resolve_path"]
+           "pose_matrix", "resolve_path", "DRIVER_NUMBERS", "DRIVER_NAMES"]
+
+#: optional numbers (> 0) of a profile's ``driver:`` section: s between trajectory points the
+#: controller requires, rad/s it accepts on every joint (see :mod:`ambots.trajectory`)
+DRIVER_NUMBERS = ("sample_period", "max_joint_speed")
+#: optional names of a profile's ``driver:`` section (topics relative to the arm's namespace)
+DRIVER_NAMES = ("joint_states_topic", "extruder_topic", "extruder_joint")
 
 
 def resolve_path(path, relative_to=None):
@@ -204,6 +210,15 @@ def load_arm_profile(path):
     names = driver.get("joint_names")
     if not isinstance(names, list) or len(names) != n or not all(isinstance(s, str) for s in names):
         raise ConfigError(path, "driver.joint_names", "expected %d joint names" % n)
+    options = dict(driver.data)
+    for key in ("joint_names", "command_topic"):
+        options.pop(key, None)
+    for key in DRIVER_NUMBERS:                 # the controller's constraints, as data (ambots.trajectory)
+        if key in options:
+            options[key] = driver.num(key, positive=True)
+    for key in DRIVER_NAMES:
+        if key in options:
+            options[key] = driver.str(key)
     model = resolve_path(r.str("model"), path)
     if not os.path.isfile(model):
         raise ConfigError(path, "model", "model file %s not found" % model)
@@ -217,7 +232,7 @@ def load_arm_profile(path):
         reach=r.num("reach", positive=True), joints=tuple(joints), home=home,
         velocity_scaling=scaling, colour=r.vec("filament_colour", 4),
         driver_joint_names=tuple(names), driver_command_topic=driver.str("command_topic"),
-        driver_options={k: v for k, v in driver.data.items() if k not in ("joint_names", "command_topic")})
+        driver_options=options)
 
 
 @dataclass(frozen=True)

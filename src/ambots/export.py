@@ -55,6 +55,7 @@ import numpy as np
 from ambots.errors import ConfigError, ExportError
 from ambots.motion import Directive, MotionPlanner, Moves, Pause as Dwell
 from ambots.runner import ArmRunner
+from ambots.trajectory import finite_differences, joint_limits, retime
 
 __all__ = ["FORMATS", "TIMINGS", "UR_BRAND", "PlanFolder", "ExecutedBlock", "ArmRecord", "Trajectory",
            "load_plan", "record_plan", "retime", "trajectory", "check_limits", "urscript", "export_plan",
@@ -157,49 +158,7 @@ def _read_json(path):
         raise ExportError("%s: not valid JSON: %s" % (path, exc)) from None
 
 
-# ------------------------------------------------------------- re-timing and recording
-def retime(t, Q, amax, max_iter=200):
-    """Times (K,) of the waypoints ``Q`` (K, n) of a block, every interval
-    stretched as little as this simple scheme finds (never shortened) so that
-    the accelerations :func:`check_limits` measures stay within ``amax``
-    (n,), the block starting and ending at rest.  Intervals without joint
-    motion (a retraction, a dwell) keep their duration and count as rest.
-
-    Each round stretches both intervals next to every waypoint over the
-    limit by the square root of its excess (the acceleration there then
-    fits, as if the neighbours did not change); after ``max_iter`` rounds
-    whatever is left is removed by stretching the whole block uniformly."""
-    t = np.asarray(t, float)
-    T = np.diff(t)
-    D = np.diff(np.asarray(Q, float), axis=0)
-    moving = np.any(D != 0, axis=1) & (T > 0)
-    if not moving.any():
-        return t
-    amax = np.asarray(amax, float)
-
-    def excess(T):
-        Te = np.where(moving, T, 0.0)
-        V = np.where(moving[:, None], D / np.where(moving, T, 1.0)[:, None], 0.0)
-        rest = np.zeros((1, D.shape[1]))
-        dV = np.abs(np.diff(np.concatenate([rest, V, rest]), axis=0))
-        h = 0.5 * (np.concatenate([[0.0], Te]) + np.concatenate([Te, [0.0]]))
-        need = (dV / amax).max(axis=1)
-        return np.where(h > 0, need / np.where(h > 0, h, 1.0), 0.0)
-
-    for _ in range(max_iter):
-        r = excess(T)
-        bad = r > 1.0
-        if not bad.any():
-            break
-        f = np.where(bad, np.sqrt(r) * (1 + 1e-9), 1.0)
-        T = np.where(moving, T * np.maximum(f[:-1], f[1:]), T)
-    else:
-        r = excess(T).max()
-        if r > 1.0:
-            T = np.where(moving, T * math.sqrt(r) * (1 + 1e-9), T)
-    return np.concatenate([t[:1], t[0] + np.cumsum(T)])
-
-
+# ------------------------------------------------------------- recording
 class _Planner(MotionPlanner):
     """The firmware's planner; tags every block of :meth:`plan_moves` with
     ``lead``: how many of its first waypoints are a joint-space move (0: the
@@ -214,8 +173,8 @@ class _Planner(MotionPlanner):
         super().__init__(arm, cell, **kw)
         self.retime = retime
 
-    def joint_move_to(self, *args, **kw):
-        block = super().joint_move_to(*args, **kw)
+    def _joint_move_to(self, *args, **kw):
+        block = super()._joint_move_to(*args, **kw)
         self._lead = block
         return block
 
@@ -378,7 +337,9 @@ def trajectory(record):
 def check_limits(traj, profile=None):
     """Joint speeds and accelerations of a trajectory against the profile's
     limits times its ``velocity_scaling`` (the fraction of the limits used
-    when printing, as the planner uses them).
+    when printing, as the planner uses them; speeds capped by the driver's
+    ``max_joint_speed``: :func:`ambots.trajectory.joint_limits`), measured by
+    :func:`ambots.trajectory.finite_differences`.
 
     Speed: per interval, the joint change over the interval's duration
     (what a controller interpolating linearly between the rows commands).
@@ -394,21 +355,10 @@ def check_limits(traj, profile=None):
     Returns a dict (the ``checks`` of the trajectory's YAML header)."""
     profile = profile or traj.arm.profile
     names = list(traj.joint_names)
-    scale = profile.velocity_scaling
-    vlim = np.array([j.velocity for j in profile.joints]) * scale
-    alim = np.array([j.acceleration for j in profile.joints]) * scale
+    vlim, alim = joint_limits(profile)
     n = len(names)
-    dt = np.diff(traj.t)
-    D = np.diff(traj.Q, axis=0)
-    V = D / dt[:, None] if len(dt) else np.zeros((0, n))
+    V, A = finite_differences(traj.t, traj.Q)
     speed = np.abs(V).max(axis=0) if len(V) else np.zeros(n)
-    moving = np.any(D != 0, axis=1)
-    rest = np.zeros((1, n))
-    Vm = np.where(moving[:, None], V, 0.0)
-    dV = np.diff(np.concatenate([rest, Vm, rest]), axis=0)
-    Te = np.where(moving, dt, 0.0)
-    h = 0.5 * (np.concatenate([[0.0], Te]) + np.concatenate([Te, [0.0]]))
-    A = np.where(h[:, None] > 0, dV / np.where(h > 0, h, 1.0)[:, None], 0.0)
     accel = np.abs(A).max(axis=0)
     ratio = np.abs(A) / alim
     rows_over = np.nonzero((ratio > 1 + 1e-6).any(axis=1))[0]

@@ -50,6 +50,7 @@ forwards (:class:`ambots.reliable.Receiver`).  The ROS layer
 import argparse
 import functools
 import itertools
+import json
 import os
 import re
 import threading
@@ -149,12 +150,14 @@ class ReliableLink:
                 self._cv.notify_all()
             return
         with self._cv:
-            delivery = self.receiver.receive(msg)
-            if delivery.execute:
-                self._inbox.append(msg)
-                self._cv.notify_all()
-        if delivery.ack is not None:
-            self._transmit(encode(delivery.ack))
+            deliveries = self.receiver.deliver(msg)
+            for m, delivery in deliveries:
+                if delivery.execute:
+                    self._inbox.append(m)
+            self._cv.notify_all()
+        for _, delivery in deliveries:
+            if delivery.ack is not None:
+                self._transmit(encode(delivery.ack))
 
     def tick(self):
         """Transmit again what is due; queue an :class:`Undelivered` for
@@ -187,6 +190,24 @@ class ReliableLink:
         with self._cv:
             if not self._inbox:
                 self._cv.wait(max(0.0, timeout))
+
+    def receive_progress(self, text):
+        """Take in the hub's progress JSON (``topics.PROGRESS_TOPIC``);
+        unreadable text is ignored."""
+        try:
+            doc = json.loads(text)
+            arms = doc["arms"]
+        except (ValueError, TypeError, KeyError):
+            return
+        if isinstance(arms, dict):
+            with self._cv:
+                self._progress = doc
+                self._cv.notify_all()
+
+    def progress(self):
+        """The hub's latest progress document (dict), or None."""
+        with self._cv:
+            return getattr(self, "_progress", None)
 
 
 # ------------------------------------------------------------- job progress
@@ -261,6 +282,29 @@ class JobTracker:
         if 1 <= line <= len(program.lines):
             text += "\n    line %d of %s's program: %s" % (line, program.arm.name, program.lines[line - 1])
         return text
+
+
+def _progress_messages(doc, programs):
+    """The hub's progress document as the A10s (and A11s) it summarises,
+    for the arms of ``programs`` (id -> ArmProgram) it has heard from."""
+    out = []
+    for entry in doc.get("arms", {}).values():
+        try:
+            robot, state = int(entry["id"]), ArmState[entry["state"]]
+            status = Status(robot, state, int(entry["layer"] or 0), int(entry["line"] or 0),
+                            float(entry["percent"] or 0.0))
+        except (KeyError, TypeError, ValueError, AmbotsError):
+            continue                      # UNKNOWN (no report yet) or unreadable
+        if robot not in programs:
+            continue
+        error = entry.get("error")
+        if state == ArmState.ERROR and isinstance(error, dict):
+            try:
+                out.append(ErrorReport(robot, int(error.get("line") or 0), str(error.get("message", ""))[:512]))
+            except (TypeError, ValueError, AmbotsError):
+                pass
+        out.append(status)
+    return out
 
 
 # --------------------------------------------------------- programs on disk
@@ -540,10 +584,13 @@ class Menu:
             return False
         return self.follow(deadline)
 
-    def follow(self, deadline=None):
+    def follow(self, deadline=None, attach=False):
         """Print the arms' progress until every arm of the job is DONE (True)
         or one fails or ``deadline`` (default: :attr:`timeout` from now, or
-        never) passes (False, the reason on the error stream)."""
+        never) passes (False, the reason on the error stream).  ``attach``:
+        the job was started by another front end (this one may be its
+        replacement after a crash), so the hub's progress document counts
+        too: it knows the arms' states from before this front end was up."""
         t0 = self.clock()
         if deadline is None and self.timeout is not None:
             deadline = t0 + self.timeout
@@ -551,8 +598,15 @@ class Menu:
             "" if deadline is None else ", at most %.0f s" % (deadline - t0)))
         tracker = JobTracker(self.programs)
         grace_end = None
+        seen_progress = None
         while True:
             incoming, self._backlog = self._backlog + self.link.poll(), []
+            doc = self.link.progress() if attach and hasattr(self.link, "progress") else None
+            if doc is not None and doc is not seen_progress:
+                seen_progress = doc
+                # only for arms not heard from directly: the document lags their own reports
+                incoming = [m for m in _progress_messages(doc, tracker.programs)
+                            if m.robot not in tracker.clocks] + incoming
             for msg in incoming:
                 for line in tracker.update(msg):
                     self.say(line)
@@ -575,6 +629,23 @@ class Menu:
                 return False
             ends = [t - now for t in (deadline, grace_end) if t is not None]
             self.link.wait(min([self.poll_period] + ends))
+
+    # --- --follow -------------------------------------------------------------------
+
+    def attach(self, directory, timeout=None):
+        """Follow a job that is already running (started by another front
+        end, e.g. one that crashed), its programs in ``directory``; sends
+        nothing, so the print is not disturbed.  The exit status as
+        :meth:`print_job`."""
+        try:
+            self.programs, self.directory = load_programs(directory, self.cell), directory
+        except (AmbotsError, OSError) as exc:
+            self.complain("error: %s" % one_line(exc))
+            return EXIT_BAD_INPUT
+        self.sent = True
+        self.say("attached to the job of %s in %s" % (", ".join(self.programs), directory))
+        deadline = None if timeout is None else self.clock() + timeout
+        return EXIT_OK if self.follow(deadline, attach=True) else EXIT_FAILED
 
     # --- --print --------------------------------------------------------------------
 
@@ -616,6 +687,9 @@ def build_parser(prog="front_end"):
     p.add_argument("--out", help="output folder of the programs (default: out/<model stem>)")
     p.add_argument("--print", dest="print_job", action="store_true",
                    help="run one whole job without the menu and exit with its status")
+    p.add_argument("--follow", metavar="DIR",
+                   help="attach to a job already running (its programs in DIR, e.g. after the front end "
+                        "that started it crashed): print its progress, send nothing; exit like --print")
     p.add_argument("--timeout", type=float,
                    help="s to wait for the print to finish (--print default: %.0f + twice the longest "
                         "estimated print time; menu default: no limit)" % DEFAULT_TIMEOUT_BASE_S)

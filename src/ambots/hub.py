@@ -27,10 +27,14 @@ A refusal is one line on ``topics.ERROR_TOPIC`` naming the caller, the text
 and the reason; the hub goes on.
 
 Restart: the registry comes from the cell and the progress from the arms'
-next A10s; duplicate windows start empty; messages the old hub had in flight
-are lost, and their senders retry them to the new one.  Seed the new hub's
-Sender with :func:`ambots.reliable.seq_seed` so the arms do not take its
-numbers for duplicates.
+next A10s.  What exactly-once needs -- the duplicate windows and the
+forwards not yet acknowledged -- is :meth:`Hub.snapshot`; a wrapper that
+saves it before it publishes what :meth:`Hub.handle` returned (the ROS one
+does, ``~state_dir``) can :meth:`Hub.restore` it after a crash: nothing the
+old hub acknowledged is lost, nothing is forwarded under a number the arms
+have seen for something else.  A hub that starts without a snapshot seeds
+its Sender with :func:`ambots.reliable.seq_seed` so that the arms do not
+take its numbers for duplicates.
 """
 import json
 from dataclasses import dataclass, field, replace
@@ -182,6 +186,19 @@ class Hub:
         self.receiver = receiver if receiver is not None else Receiver(topics.HUB_ID)
         self.progress = {a.id: ArmProgress(a.name, a.id) for a in cell.arms}
 
+    def snapshot(self):
+        """JSON-able state that a restarted hub needs to stay exactly-once:
+        the duplicate windows and the forwards not yet acknowledged (the
+        progress is rebuilt from the arms' next reports)."""
+        return {"receiver": self.receiver.snapshot(), "sender": self.sender.snapshot()}
+
+    def restore(self, snap, now):
+        """Continue from :meth:`snapshot` ``snap``: same duplicate windows,
+        numbering after the old hub's, its unacknowledged forwards due at
+        ``now``."""
+        self.receiver.restore(snap["receiver"])
+        self.sender.restore(snap["sender"], now)
+
     def handle(self, text, caller, now):
         """The posts answering ``text`` published by ROS node ``caller``."""
         try:
@@ -192,17 +209,20 @@ class Hub:
             return [_refusal(text, caller, str(exc))]
         except ProtocolError as exc:
             return [_refusal(text, caller, "malformed: " + exc.message)]
-        delivery = self.receiver.receive(msg, src.id)
-        posts = [Post(src.inbox, encode(delivery.ack))] if delivery.ack else []
-        if delivery.verdict is Verdict.STALE:
-            reason = ("Q%d is older than the last %d numbers of node %d: it may have been "
-                      "executed already" % (msg.seq, self.receiver.window, src.id))
-            posts.append(_refusal(text, caller, reason))
-        if delivery.execute:
-            try:
-                posts += self._route(msg, src, now)
-            except _Refused as exc:
-                posts.append(_refusal(text, caller, str(exc)))
+        posts = []
+        for m, delivery in self.receiver.deliver(msg, src.id):     # m and what it releases, in order
+            m_text = text if m is msg else encode(m)
+            if delivery.ack:
+                posts.append(Post(src.inbox, encode(delivery.ack)))
+            if delivery.verdict is Verdict.STALE:
+                reason = ("Q%d is older than the last %d numbers of node %d: it may have been "
+                          "executed already" % (m.seq, self.receiver.window, src.id))
+                posts.append(_refusal(m_text, caller, reason))
+            if delivery.execute:
+                try:
+                    posts += self._route(m, src, now)
+                except _Refused as exc:
+                    posts.append(_refusal(m_text, caller, str(exc)))
         return posts
 
     def tick(self, now):

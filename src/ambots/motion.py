@@ -38,6 +38,7 @@ import numpy as np
 from ambots.errors import AmbotsError, UnreachableError
 from ambots.gcode import Dwell, Segment, parse_gcode_text
 from ambots.program import is_directive, parse_directive
+from ambots.trajectory import joint_limits
 from ambots.units import MM
 from ambots.workspace import down_in_base
 
@@ -163,8 +164,15 @@ class Block:
     extrude_m: float = 0.0
     error: Optional[MotionError] = None      #: set if the arm cannot go past the block's end
     planned: str = "cartesian"               #: or "joint" / "ompl" for joint-space moves
+    motion: Optional[object] = None          #: a :class:`~ambots.trajectory.Motion` (planner ``timing``)
+    cartesian: Optional[np.ndarray] = None   #: (K,) interval k is part of a straight G-code move
+    #: set on a wait in place because only other arms' current poses block the
+    #: way (the runner plans the move again after it): why, e.g. "goal in collision"
+    blocked: Optional[str] = None
 
     def __post_init__(self):
+        if self.cartesian is None:
+            self.cartesian = np.zeros(len(self.t), dtype=bool)
         if self.line_end is None:
             le = np.zeros(len(self.t), dtype=bool)
             if len(self.t) > 1:
@@ -194,7 +202,7 @@ def _concat(blocks):
                  cat("e_mm"), cat("line_end"), max(b.max_deviation_mm for b in parts),
                  sum(b.travel_m for b in parts), sum(b.extrude_m for b in parts),
                  next((b.error for b in parts if b.error is not None), None),
-                 "+".join(sorted({b.planned for b in parts})))
+                 "+".join(sorted({b.planned for b in parts})), cartesian=cat("cartesian"))
 
 
 def _point_line_distance(X, A, B):
@@ -218,11 +226,18 @@ class MotionPlanner:
     sample_mm : first sampling step along a move (refined where needed)
     is_valid : optional ``f(Q (N, n)) -> bool (N,)`` saying which joint
         vectors are free of collisions right now (bed, part, other arms);
-        travel and joint moves are checked with it and re-planned by OMPL
+        travel and joint moves are checked with it and re-planned by OMPL.
+        If it has an attribute ``static`` (the same check without the
+        other arms), a move that only the other arms' current poses block
+        becomes a wait in place of ``blocked_wait_s`` s (``Block.blocked``)
+        after which the runner plans it again, instead of an error.
+    timing : optional ``f(block) -> block`` applied to every block the
+        planner returns (e.g. :class:`ambots.trajectory.SplineTiming`: timed
+        for a real controller within the acceleration limits)
     """
 
     def __init__(self, arm, cell, kin=None, tolerance_mm=DEFAULT_TOLERANCE_MM, sample_mm=10.0,
-                 is_valid=None, plan_timeout=2.0):
+                 is_valid=None, plan_timeout=2.0, timing=None):
         from ambots.model import arm_kinematics
         self.arm, self.cell = arm, cell
         self.kin = kin or arm_kinematics(arm)
@@ -230,15 +245,16 @@ class MotionPlanner:
         self.sample = sample_mm * MM
         self.is_valid = is_valid
         self.plan_timeout = plan_timeout
+        self.blocked_wait_s = 0.5         #: s to wait before planning a blocked move again
         #: > 1 stretches every planned duration (an arm slower than planned)
         self.time_scale = 1.0
         #: optional (rng, lo, hi): each planned block is stretched by a further
         #: factor drawn uniformly from [lo, hi] (an arm whose speed varies
         #: from move to move; timing-robustness tests, ``plan --slow ARM=LO:HI``)
         self.time_jitter = None
+        self.timing = timing
         prof = arm.profile
-        self.vmax = np.array([j.velocity for j in prof.joints]) * prof.velocity_scaling
-        self.amax = np.array([j.acceleration for j in prof.joints]) * prof.velocity_scaling
+        self.vmax, self.amax = joint_limits(prof)
         self.down = down_in_base(arm)
         #: no nozzle position is farther from the base (m): a loose bound
         #: (twice the published reach, plus the tool) used to cut a run of moves
@@ -275,12 +291,18 @@ class MotionPlanner:
         return self.time_scale * float(rng.uniform(lo, hi))
 
     # -------------------------------------------------------- segments
+    def _timed(self, block):
+        return self.timing(block) if self.timing is not None else block
+
     def plan_moves(self, segments, q0):
         """A run of G-code segments starting at joint vector ``q0`` -> Block.
 
         If the first segment does not start where the nozzle is, the nozzle
         first makes a joint-space move there.  An unreachable point ends the
         block at the last reachable waypoint with ``error`` set."""
+        return self._timed(self._plan_moves(segments, q0))
+
+    def _plan_moves(self, segments, q0):
         q0 = np.asarray(q0, dtype=float)
         here = self.kin.fk_batch(q0[None])[0, :3, 3]
         first = segments[0]
@@ -291,11 +313,11 @@ class MotionPlanner:
             # the first travel (no point following a fictitious start)
             if not first.extrude:
                 target = self.bed_mm_to_base(np.array([first.end]))[0]
-                lead = self.joint_move_to(target, q0, line=first.line, layer=max(first.layer, 0))
+                lead = self._joint_move_to(target, q0, line=first.line, layer=max(first.layer, 0))
                 segments = segments[1:]
             else:
-                lead = self.joint_move_to(start, q0, line=first.line, layer=max(first.layer, 0))
-            if lead.error is not None or not segments:
+                lead = self._joint_move_to(start, q0, line=first.line, layer=max(first.layer, 0))
+            if lead.error is not None or lead.blocked is not None or not segments:
                 return lead
             q0 = lead.Q[-1]
         body = self._cartesian(segments, q0)
@@ -385,13 +407,18 @@ class MotionPlanner:
         layers = np.maximum(np.array([s.layer for s in segments]), 0)[seg_of_iv]
         travel = float(L_iv[~extr].sum()) * MM
         extrude = float(L_iv[extr].sum()) * MM
+        cart = np.ones(K, dtype=bool)
+        cart[0] = False
         return Block(t, Q, self.base_to_world(self.kin.fk_batch(Q)[:, :3, 3]), lines, layers, extr, e_iv,
-                     max_deviation_mm=dev_max, travel_m=travel, extrude_m=extrude, error=error)
+                     max_deviation_mm=dev_max, travel_m=travel, extrude_m=extrude, error=error, cartesian=cart)
 
     # -------------------------------------------------------- joint moves
     def joint_move_to(self, target_base, q0, line=0, layer=0):
         """Joint-space move of the nozzle to ``target_base`` (3,) base-frame m,
         pointing down: straight in joint space when clear, else OMPL."""
+        return self._timed(self._joint_move_to(target_base, q0, line, layer))
+
+    def _joint_move_to(self, target_base, q0, line=0, layer=0):
         q0 = np.asarray(q0, dtype=float)
         try:
             q1 = self.kin.ik(target_base, q0, self.down)
@@ -404,10 +431,13 @@ class MotionPlanner:
                 pass
             if q1 is None:
                 return self._still(q0, line, layer, MotionError(line, "unreachable: %s" % exc))
-        return self.joint_path(q0, q1, line, layer)
+        return self._joint_path(q0, q1, line, layer)
 
     def joint_path(self, q0, q1, line=0, layer=0):
         """Timed joint-space path q0 -> q1 (straight if clear, else OMPL)."""
+        return self._timed(self._joint_path(q0, q1, line, layer))
+
+    def _joint_path(self, q0, q1, line=0, layer=0):
         from ambots.planning import JointPlanner, PlanningError, interpolate, time_parametrize
         path, how = np.array([q0, q1]), "joint"
         if self.is_valid is not None:
@@ -415,6 +445,11 @@ class MotionPlanner:
             try:
                 path = planner.plan(q0, q1, timeout=self.plan_timeout)
             except PlanningError as exc:
+                if self._clear_without_others(q0, q1):
+                    # only other arms, where they are now, are in the way: they move on
+                    block = self.dwell(q0, self.blocked_wait_s, line, layer)
+                    block.blocked = str(exc)
+                    return block
                 return self._still(q0, line, layer, MotionError(line, "no collision-free path: %s" % exc))
             how = "joint" if len(path) == 2 else "ompl"
         path = interpolate(path, 0.05)
@@ -425,6 +460,21 @@ class MotionPlanner:
         return Block(np.asarray(t, dtype=float), path, tip, np.full(K, line), np.full(K, layer),
                      np.zeros(K, dtype=bool), np.zeros(K), travel_m=L, planned=how)
 
+    def _clear_without_others(self, q0, q1):
+        """Whether q0 -> q1 could be planned if the other arms were not
+        where they are now (``is_valid.static``: the same check without
+        moving obstacles; False when ``is_valid`` has none)."""
+        from ambots.planning import JointPlanner, PlanningError
+        static = getattr(self.is_valid, "static", None)
+        if static is None:
+            return False
+        try:
+            JointPlanner(self.kin.lower, self.kin.upper, static, resolution=0.02).plan(
+                q0, q1, timeout=self.plan_timeout)
+        except PlanningError:
+            return False
+        return True
+
     def _still(self, q, line, layer, error=None):
         return Block(np.zeros(1), np.asarray(q, dtype=float)[None], self.tip_world(np.asarray(q)[None]),
                      np.array([line]), np.array([layer]), np.zeros(1, dtype=bool), np.zeros(1), error=error)
@@ -432,5 +482,5 @@ class MotionPlanner:
     def dwell(self, q, seconds, line=0, layer=0):
         """Stand still for ``seconds``."""
         q = np.asarray(q, dtype=float)
-        return Block(np.array([0.0, float(seconds)]), np.stack([q, q]), self.tip_world(np.stack([q, q])),
-                     np.array([line, line]), np.array([layer, layer]), np.zeros(2, dtype=bool), np.zeros(2))
+        return self._timed(Block(np.array([0.0, float(seconds)]), np.stack([q, q]), self.tip_world(np.stack([q, q])),
+                     np.array([line, line]), np.array([layer, layer]), np.zeros(2, dtype=bool), np.zeros(2)))

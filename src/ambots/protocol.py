@@ -51,17 +51,21 @@ A11   R N "text"                       arm R reports an error at G-code line N
                                        (0 = not tied to a line); text <= 512 chars
 ====  ===============================  ==============================================
 
-Any command may also carry the header words ``S<sender>`` and ``Q<seq>``
+Any command may also carry the header words ``S<sender>``, ``Q<seq>`` and ``B<seq>``
 (A8 uses Q for the acknowledged number and is never itself acknowledged).
 Reliable delivery: a sender numbers its messages with Q (0..2**32-1,
 increasing, wrapping); a receiver answers every message that has a Q with
 ``A8 R<sender> Q<seq>`` -- also for a duplicate -- and executes a given
 (sender, Q) at most once; the sender retries until acknowledged.  A corrupt
 message (e.g. an A5 whose K does not match) is not acknowledged, so it is
-retried.
+retried.  Order: a numbered message may also carry ``B<seq>``, the Q of the
+sender's previous message to the same destination if that one is not yet
+acknowledged; the receiver holds the message (no A8) until it has executed
+(sender, B), so each sender's commands take effect in the order sent even
+when the network reorders them (an A1 can never overtake its A5).
 
 Ranges: robot ids (R except in A8, W) are 1..2**31-1; node ids (S, and R in
-A8) are 0..2**31-1 where 0 (:data:`HUB`) is the hub; Q, C, K 0..2**32-1;
+A8) are 0..2**31-1 where 0 (:data:`HUB`) is the hub; Q, B, C, K 0..2**32-1;
 L, N 0..2**31-1; X Y Z |v| <= 1e6 mm; P 0..100; M 0..1e9 s.
 """
 import json
@@ -156,7 +160,7 @@ _MM = _Num(-MAX_ABS_MM, MAX_ABS_MM, "a coordinate within +-%g mm" % MAX_ABS_MM)
 _PERCENT = _Num(0.0, 100.0, "a percentage 0..100")
 _CLOCK = _Num(0.0, 1e9, "a time 0..1e9 s")
 _STATE = _State(0, max(ArmState), "an arm state 0..%d" % max(ArmState))
-_HEADER = (("S", "sender", _NODE), ("Q", "seq", _U32))
+_HEADER = (("S", "sender", _NODE), ("Q", "seq", _U32), ("B", "after", _U32))
 
 
 class _Message:
@@ -177,6 +181,8 @@ class _Message:
                 object.__setattr__(self, name, kind.check(v))
             except ValueError as exc:
                 raise ProtocolError(repr(self), "A%d %s: %s" % (self.CODE, letter, exc))
+        if getattr(self, "after", None) is not None and getattr(self, "seq", None) is None:
+            raise ProtocolError(repr(self), "A%d: B (execute after) needs Q" % self.CODE)
         self._check()
 
     def _check(self):
@@ -193,6 +199,7 @@ class Start(_Message):
     robot: int
     sender: Optional[int] = None
     seq: Optional[int] = None
+    after: Optional[int] = None
     CODE: ClassVar[int] = 1
     WORDS: ClassVar[Tuple] = (("R", "robot", _ROBOT),) + _HEADER
 
@@ -203,6 +210,7 @@ class Pause(_Message):
     robot: int
     sender: Optional[int] = None
     seq: Optional[int] = None
+    after: Optional[int] = None
     CODE: ClassVar[int] = 2
     WORDS: ClassVar[Tuple] = (("R", "robot", _ROBOT),) + _HEADER
 
@@ -214,6 +222,7 @@ class SendPosition(_Message):
     robot: int
     sender: Optional[int] = None
     seq: Optional[int] = None
+    after: Optional[int] = None
     CODE: ClassVar[int] = 3
     WORDS: ClassVar[Tuple] = (("R", "robot", _ROBOT),) + _HEADER
 
@@ -224,6 +233,7 @@ class ClearChunk(_Message):
     robot: int
     sender: Optional[int] = None
     seq: Optional[int] = None
+    after: Optional[int] = None
     CODE: ClassVar[int] = 4
     WORDS: ClassVar[Tuple] = (("R", "robot", _ROBOT),) + _HEADER
 
@@ -239,6 +249,7 @@ class LoadChunk(_Message):
     chunk_id: Optional[int] = None
     sender: Optional[int] = None
     seq: Optional[int] = None
+    after: Optional[int] = None
     CODE: ClassVar[int] = 5
     WORDS: ClassVar[Tuple] = (("R", "robot", _ROBOT), ("C", "chunk_id", _U32)) + _HEADER
 
@@ -265,6 +276,7 @@ class Resume(_Message):
     robot: int
     sender: Optional[int] = None
     seq: Optional[int] = None
+    after: Optional[int] = None
     CODE: ClassVar[int] = 6
     WORDS: ClassVar[Tuple] = (("R", "robot", _ROBOT),) + _HEADER
 
@@ -278,6 +290,7 @@ class MoveTo(_Message):
     z: float
     sender: Optional[int] = None
     seq: Optional[int] = None
+    after: Optional[int] = None
     CODE: ClassVar[int] = 7
     WORDS: ClassVar[Tuple] = (("R", "robot", _ROBOT), ("X", "x", _MM), ("Y", "y", _MM),
                               ("Z", "z", _MM)) + _HEADER
@@ -306,6 +319,7 @@ class WaitFor(_Message):
     line: Optional[int] = None
     sender: Optional[int] = None
     seq: Optional[int] = None
+    after: Optional[int] = None
     CODE: ClassVar[int] = 9
     WORDS: ClassVar[Tuple] = (("R", "robot", _ROBOT), ("W", "other", _ROBOT),
                               ("L", "layer", _COUNT), ("N", "line", _COUNT)) + _HEADER
@@ -333,6 +347,7 @@ class Status(_Message):
     clock: Optional[float] = None
     sender: Optional[int] = None
     seq: Optional[int] = None
+    after: Optional[int] = None
     CODE: ClassVar[int] = 10
     WORDS: ClassVar[Tuple] = (("R", "robot", _ROBOT), ("T", "state", _STATE),
                               ("L", "layer", _COUNT), ("N", "line", _COUNT),
@@ -359,6 +374,7 @@ class ErrorReport(_Message):
     message: str
     sender: Optional[int] = None
     seq: Optional[int] = None
+    after: Optional[int] = None
     CODE: ClassVar[int] = 11
     WORDS: ClassVar[Tuple] = (("R", "robot", _ROBOT), ("N", "line", _COUNT)) + _HEADER
 

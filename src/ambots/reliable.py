@@ -15,6 +15,13 @@ A-series protocol (hub, firmware, front end).
   ``window`` bits per sender.  A number older than the window cannot be
   told apart from a duplicate; it is acknowledged but not executed
   (:attr:`Verdict.STALE`), and the caller should report it.
+- Order: the sender writes ``B<seq>`` on a message when its previous message
+  to the same destination is still unacknowledged (retransmissions drop the
+  B once that one is settled); :meth:`Receiver.deliver` holds such a message
+  (:attr:`Verdict.HELD`, no A8) until (sender, B) has been admitted, then
+  releases it.  Each sender's messages to one destination therefore take
+  effect in sending order, exactly once, under loss, duplication and
+  reordering; a held message costs nothing to the sender but waiting.
 
 Q wraps at 2**32; numbers are compared in serial-number arithmetic (RFC 1982).
 No clock is read here: every call that depends on time takes ``now``
@@ -83,6 +90,7 @@ class Sender:
         self.max_tries = max_tries
         self._next_seq = first_seq % SEQ_MODULUS
         self._pending = {}       # seq -> Outgoing, in sending order
+        self._last_to = {}       # destination -> seq of the last message sent to it
 
     @property
     def pending(self):
@@ -97,9 +105,12 @@ class Sender:
             raise ValueError("an A8 is never numbered nor retried")
         seq = self._next_seq
         self._next_seq = seq_after(seq)
-        out = Outgoing(replace(message, sender=self.node_id, seq=seq), destination, 1,
+        before = self._last_to.get(destination)
+        after = before if before in self._pending else None
+        out = Outgoing(replace(message, sender=self.node_id, seq=seq, after=after), destination, 1,
                        self.initial_timeout, now + self.initial_timeout)
         self._pending[seq] = out
+        self._last_to[destination] = seq
         return out
 
     def acknowledge(self, ack, acker=None):
@@ -129,10 +140,11 @@ class Sender:
         unacknowledged messages again (due at once, same numbers)."""
         from ambots.protocol import decode
         self._next_seq = int(snap["next"]) % SEQ_MODULUS
-        self._pending = {}
+        self._pending, self._last_to = {}, {}
         for text, dest, tries in snap["pending"]:
             msg = decode(text)
             self._pending[msg.seq] = Outgoing(msg, int(dest), int(tries), self.initial_timeout, now)
+            self._last_to[int(dest)] = msg.seq
 
     def due(self, now, on_give_up=None):
         """The messages to transmit again at ``now`` (their tries, timeout
@@ -151,6 +163,8 @@ class Sender:
             out.tries += 1
             out.timeout = min(out.timeout * self.backoff, self.max_timeout)
             out.due = now + out.timeout
+            if out.message.after is not None and out.message.after not in self._pending:
+                out.message = replace(out.message, after=None)    # its predecessor is settled
             resend.append(out)
         return resend
 
@@ -160,6 +174,7 @@ class Verdict(Enum):
     NEW = "new"                 #: first time: acknowledge and execute
     DUPLICATE = "duplicate"     #: executed before: acknowledge again, do not execute
     STALE = "stale"             #: older than the window: acknowledge, do not execute, report
+    HELD = "held"               #: its predecessor (B) is not here yet: no A8, released later
     UNNUMBERED = "unnumbered"   #: no Q (original design, or an A8): execute, no acknowledgement
 
 
@@ -193,10 +208,12 @@ class Receiver:
             raise ValueError("window must be >= 1, got %r" % window)
         self.node_id, self.window = node_id, window
         self._windows = {}      # sender id -> _Window
+        self._held = {}         # sender id -> {B: message waiting for (sender, B)}
 
     def receive(self, message, sender=None):
-        """The :class:`Delivery` for ``message``.  ``sender`` is the node id
-        it really comes from (default: its S word, else the hub, as in
+        """The :class:`Delivery` for ``message`` alone, ignoring its B word
+        (no holding).  ``sender`` is the node id it really comes from
+        (default: its S word, else the hub, as in
         :func:`ambots.protocol.ack`); the A8 is addressed to it."""
         seq = getattr(message, "seq", None)       # an A8 has no seq: never acknowledged
         if seq is None:
@@ -204,6 +221,44 @@ class Receiver:
         if sender is None:
             sender = HUB if message.sender is None else message.sender
         return Delivery(self._admit(sender, seq), Ack(sender, seq, self.node_id))
+
+    def deliver(self, message, sender=None):
+        """What to do with ``message`` and with the held messages it
+        releases: a list of ``(message, Delivery)`` in execution order.  The
+        first is ``message`` itself, :attr:`Verdict.HELD` (no A8) if it
+        names a predecessor (B) not admitted yet; each message admitted
+        releases the one held behind it, and so on down the chain."""
+        seq = getattr(message, "seq", None)
+        if seq is None:
+            return [(message, Delivery(Verdict.UNNUMBERED, None))]
+        if sender is None:
+            sender = HUB if message.sender is None else message.sender
+        after = getattr(message, "after", None)
+        if after is not None and not self._seen(sender, seq) and not self._seen(sender, after):
+            held = self._held.setdefault(sender, {})
+            if len(held) >= self.window:          # bounded: the oldest waits for its retry
+                del held[next(iter(held))]
+            held[after] = message
+            return [(message, Delivery(Verdict.HELD, None))]
+        out = [(message, self.receive(message, sender))]
+        held = self._held.get(sender)
+        while held:
+            nxt = held.pop(out[-1][0].seq, None)
+            if nxt is None:
+                break
+            out.append((nxt, self.receive(nxt, sender)))
+        return out
+
+    def _seen(self, sender, seq):
+        """Whether (sender, seq) was admitted, or is too old to tell (then
+        it counts as done, like a STALE message)."""
+        w = self._windows.get(sender)
+        if w is None:
+            return False
+        behind = -seq_diff(seq, w.top)
+        if behind < 0:
+            return False
+        return behind >= self.window or bool(w.seen & (1 << behind))
 
     def snapshot(self):
         """JSON-able state: per sender the highest number and the bit mask of

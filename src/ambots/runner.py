@@ -43,7 +43,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ambots.errors import GCodeError
-from ambots.motion import Directive, MotionPlanner, Pause as Dwell, read_program, FILAMENT_AREA_MM2
+from ambots.motion import Directive, MotionError, MotionPlanner, Pause as Dwell, read_program, FILAMENT_AREA_MM2
 from ambots.protocol import (Ack, ArmState, ClearChunk, ErrorReport, LoadChunk, MoveTo, Pause, Resume,
                              SendPosition, Start, Status, WaitFor, MAX_TEXT, decode, encode)
 from ambots.units import MM
@@ -94,7 +94,14 @@ class ArmRunner:
     q0 : initial joint vector (default: the profile's home)
     now : initial simulated time (s)
     record : keep every executed waypoint (``trace``) for offline analysis
+
+    A move that only the other arms' current poses block (``Block.blocked``,
+    see :class:`~ambots.motion.MotionPlanner`) is waited for and planned
+    again, for at most :attr:`max_blocked_s` simulated s in a row; then it
+    is an error like an unreachable point.
     """
+
+    max_blocked_s = 60.0
 
     def __init__(self, arm, cell, planner=None, q0=None, now=0.0, record=False):
         self.arm, self.cell = arm, cell
@@ -113,6 +120,9 @@ class ArmRunner:
         self.trace_t: List[np.ndarray] = []
         self.trace_q: List[np.ndarray] = []
         self._trace_end = -np.inf    #: simulated time of the last waypoint recorded
+        #: optional ``f(block, t0, k)``: told of every block the arm starts (k = 0) or resumes (at
+        #: waypoint k) at simulated time ``t0`` (a driver streaming the motion to a controller)
+        self.on_motion = None
         self._clear()
 
     # ----------------------------------------------------------- program
@@ -133,6 +143,10 @@ class ArmRunner:
         self.reported_line = -1
         self._ahead = {}             #: item index -> (start joints, block) planned ahead
         self._block_src = None       #: where the current block came from (for checkpoints)
+        self.blocked_s = 0.0         #: s waited so far for other arms to clear the way
+        #: (block, waypoint): a pause stops there, not at the end of the line being executed
+        #: (set by a driver that has sent the motion up to later than that line's end)
+        self.pause_at = None
 
     @property
     def percent(self):
@@ -167,6 +181,12 @@ class ArmRunner:
 
     def _error(self, line, text):
         self.outbox.append((self.clock, ErrorReport(self.id, int(line), str(text)[:MAX_TEXT])))
+
+    def _begin(self, block, t0):
+        """``block`` starts at simulated time ``t0``."""
+        self.block, self.block_t0, self.k = block, float(t0), 0
+        if self.on_motion is not None and block is not None:
+            self.on_motion(block, self.block_t0, 0)
 
     # ----------------------------------------------------------- commands
     def handle(self, msg, now=None):
@@ -251,6 +271,8 @@ class ArmRunner:
         self.state = ArmState.WAITING if self.wait is not None else ArmState.PRINTING
         if self.block is not None:       # continue the block where it stopped
             self.block_t0 = now - self.block.t[self.k]
+            if self.on_motion is not None:
+                self.on_motion(self.block, self.block_t0, self.k)
         self.clock = now
         self._report()
 
@@ -284,8 +306,8 @@ class ArmRunner:
             return
         self.after_block = self.state
         self._block_src = ["manual", float(msg.x), float(msg.y), float(msg.z)]
-        self.block, self.block_t0, self.k = block, now, 0
         self.state = ArmState.PRINTING
+        self._begin(block, now)
 
     # ----------------------------------------------------------- checkpoints
     def checkpoint(self):
@@ -357,7 +379,7 @@ class ArmRunner:
                 rest = _remaining(item.segments, cur["line"], cur["line_done"], self.nozzle_mm())
                 self.block = self.planner.plan_moves(rest, self.q) if rest else None
         self._block_src = list(src)
-        self.block_t0, self.k = self.clock, 0
+        self._begin(self.block, self.clock)
 
     # ----------------------------------------------------------- time
     def _wait_satisfied(self):
@@ -452,7 +474,7 @@ class ArmRunner:
         b = self.block
         self.stats.plans[b.planned] = self.stats.plans.get(b.planned, 0) + 1
         self.stats.max_path_error_mm = max(self.stats.max_path_error_mm, b.max_deviation_mm)
-        self.block_t0, self.k = self.clock, 0
+        self._begin(b, self.clock)
         if self.stats.first_motion_s is None:
             self.stats.first_motion_s = self.clock
         return True
@@ -507,9 +529,8 @@ class ArmRunner:
         if target == self.id and isinstance(msg, MoveTo):
             target_base = self.planner.bed_mm_to_base(np.array([[msg.x, msg.y, msg.z]]))[0]
             self._block_src = ["item", self.idx - 1]
-            self.block = self.planner.joint_move_to(target_base, self.q, line=item.line,
-                                                    layer=self.layer_of_line[item.line])
-            self.block_t0, self.k = self.clock, 0
+            self._begin(self.planner.joint_move_to(target_base, self.q, line=item.line,
+                                                   layer=self.layer_of_line[item.line]), self.clock)
             self.stats.plans[self.block.planned] = self.stats.plans.get(self.block.planned, 0) + 1
             return
         if target == self.id:
@@ -529,8 +550,7 @@ class ArmRunner:
         kk = min(max(kk, self.k), K - 1)
         stop = None
         if self.pause_requested:
-            ends = np.nonzero(b.line_end[self.k + 1:])[0]
-            j = self.k + 1 + int(ends[0]) if len(ends) else K - 1
+            j = self._pause_point(b)
             if j <= kk:
                 kk, stop = j, True
         if kk > self.k:
@@ -538,6 +558,7 @@ class ArmRunner:
             self.k = kk
         if stop:
             self.pause_requested = False
+            self.pause_at = None
             self.clock = self.block_t0 + b.t[self.k]
             if self.k == K - 1:
                 self._end_block()
@@ -550,6 +571,14 @@ class ArmRunner:
             return self.state is ArmState.PRINTING
         self.clock = now
         return False
+
+    def _pause_point(self, b):
+        """The waypoint where a pause requested now stops the block ``b``:
+        :attr:`pause_at` if set for it, else the end of the line being executed."""
+        if self.pause_at is not None and self.pause_at[0] is b and self.pause_at[1] > self.k:
+            return int(self.pause_at[1])
+        ends = np.nonzero(b.line_end[self.k + 1:])[0]
+        return self.k + 1 + int(ends[0]) if len(ends) else len(b.t) - 1
 
     def _execute(self, b, k0, k1):
         """Waypoints k0 -> k1 of block ``b`` are reached."""
@@ -584,6 +613,18 @@ class ArmRunner:
         self.stats.extrude_m += b.extrude_m
         self.stats.travel_m += b.travel_m
         self.block = None
+        if b.blocked is not None and self._block_src is not None and self._block_src[0] == "item":
+            # only other arms were in the way: plan the same item again, up to max_blocked_s
+            self.blocked_s += b.duration
+            self.stats.print_time_s -= b.duration      # a wait, not motion
+            self.stats.idle_time_s += b.duration
+            if self.blocked_s <= self.max_blocked_s:
+                self.idx = self._block_src[1]
+                self._ahead.pop(self.idx, None)
+                return
+            b.error = MotionError(int(b.line[0]), "other arms blocked the way for %.0f s: %s"
+                                  % (self.blocked_s, b.blocked))
+        self.blocked_s = 0.0
         if b.error is not None:
             self.stats.ik_failures += 1
             self.state = ArmState.ERROR

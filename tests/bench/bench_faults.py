@@ -2,8 +2,9 @@
 system (real roscore, hub, firmware nodes, front end; see tests/ros/faults.py):
 a clean print of a small two-arm job, the same job with 20 % drop + 10 %
 duplication + reordering on every hub topic, the same with the Kinova's
-firmware killed (SIGKILL) mid-print, and with the UR10 30 % slower than
-planned; plus the hostile-input suite (tests/unit/test_hostile.py).
+firmware killed (SIGKILL) mid-print, the same with the hub and the front
+end killed instead (hub respawned, a new front end --follow), with the UR10 30 % slower than
+planned, and the demo model clean and under the same faults; plus the hostile-input suite (tests/unit/test_hostile.py).
 Segments lost / duplicated: per arm and G-code line, filament in the deposit
 journal against the program (each extrusion must be printed exactly once)."""
 import os
@@ -21,12 +22,20 @@ def main():
     from faults import coverage, run_print, small_model
     tmp = tempfile.mkdtemp(prefix="ambots-faults-")
     model = small_model(os.path.join(tmp, "block.stl"))
+    from ambots import data_path
+    from ambots.job import DEMO_MODEL
+    demo = data_path(DEMO_MODEL)
     runs = [("clean", {}), ("faults seed 7", {"faults": FAULTS % 7}),
             ("faults seed 8 + kill -9", {"faults": FAULTS % 8, "kill_after": 0.8}),
-            ("ur10 30 % slower", {"slowdown": "ur10=1.3"})]
+            ("faults seed 5 + hub and front end kill -9", {"faults": FAULTS % 5, "kill_hub_after": 0.3,
+                                                           "replace_front_end_after": 0.8}),
+            ("ur10 30 % slower", {"slowdown": "ur10=1.3"}),
+            ("demo model, clean", {"model": demo}),
+            ("demo model, faults seed 7", {"model": demo, "faults": FAULTS % 7})]
     rows = []
     for i, (label, kw) in enumerate(runs):
-        run = run_print(os.path.join(tmp, "run%d" % i), 11650 + i, model, **kw)
+        kw = dict(kw)
+        run = run_print(os.path.join(tmp, "run%d" % i), 11650 + i, kw.pop("model", model), **kw)
         rep = run["report"] or {}
         hub = (rep.get("hub_progress") or {})
         f = hub.get("faults", {})

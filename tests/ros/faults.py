@@ -58,10 +58,13 @@ def small_model(path):
     return path
 
 
-def run_print(tmp, port, model, faults="", kill_after=None, slowdown="1.0", seed=0, timeout=600):
+def run_print(tmp, port, model, faults="", kill_after=None, slowdown="1.0", seed=0, timeout=600,
+              kill_hub_after=None, replace_front_end_after=None):
     """One print (see the module docstring).  ``kill_after``: wall seconds
     after the first motion at which the Kinova's firmware is killed with
-    SIGKILL (None: no kill)."""
+    SIGKILL (None: no kill); ``kill_hub_after``: the same for the hub;
+    ``replace_front_end_after``: the front end is killed then, and a new
+    one (``--follow``) follows the job to its end."""
     tmp = str(tmp)
     os.makedirs(tmp, exist_ok=True)
     env = dict(os.environ, ROS_MASTER_URI="http://localhost:%d" % port, ROS_HOME=os.path.join(tmp, "ros_home"))
@@ -83,8 +86,28 @@ def run_print(tmp, port, model, faults="", kill_after=None, slowdown="1.0", seed
         fe = subprocess.Popen([sys.executable, node, "--print", "--model", model, "--out",
                                os.path.join(tmp, "job"), "--timeout", str(timeout)],
                               stdout=logs["front_end"], stderr=subprocess.STDOUT, env=env)
-        if kill_after is not None:
-            kills = _kill_firmware_after(state, "kinova", kill_after, fe)
+        events = sorted((t, what) for t, what in ((kill_after, "kinova"), (kill_hub_after, "hub"),
+                                                  (replace_front_end_after, "front_end")) if t is not None)
+        if events:
+            _wait_for_beads(state, fe)
+            t0 = time.monotonic()
+            for t, what in events:
+                time.sleep(max(0.0, t0 + t - time.monotonic()))
+                if fe.poll() is not None:
+                    break
+                if what == "front_end":
+                    fe.kill()
+                    fe.wait()
+                    logs["front_end"].write("\n--- killed (SIGKILL); a new front end follows the job ---\n")
+                    logs["front_end"].flush()
+                    fe = subprocess.Popen([sys.executable, node, "--follow", os.path.join(tmp, "job"), "--timeout",
+                                           str(timeout)], stdout=logs["front_end"], stderr=subprocess.STDOUT, env=env)
+                    kills += 1
+                else:
+                    pid = node_processes("firmware" if what != "hub" else "communication_hub").get(what)
+                    if pid is not None:
+                        os.kill(pid, signal.SIGKILL)
+                        kills += 1
         rc = fe.wait(timeout + 60)
         watch.wait(120)
     finally:
@@ -117,18 +140,33 @@ def stop_cell(launch):
         os.killpg(launch.pid, signal.SIGKILL)
 
 
+def _command_lines():
+    """(pid, argv as a list of bytes) of every process on this machine."""
+    for pid in os.listdir("/proc"):
+        try:
+            yield int(pid), open("/proc/%s/cmdline" % pid, "rb").read().split(b"\0")
+        except (OSError, ValueError):
+            continue
+
+
+def node_processes(name):
+    """{arm name (or "hub"): pid} of the running ``firmware`` or
+    ``communication_hub`` nodes on this machine (by their roslaunch command
+    line: ``__name:=<name>``, log ``[<arm>-]<name>-N.log``)."""
+    if name == "firmware":
+        return firmware_processes()
+    return {"hub" if name == "communication_hub" else name: pid for pid, cmd in _command_lines()
+            if ("__name:=%s" % name).encode() in cmd}
+
+
 def firmware_processes():
     """{arm name: pid} of the firmware nodes running on this machine (by
     their roslaunch command line: ``__name:=firmware``, log ``<arm>-firmware-N.log``)."""
     out = {}
-    for pid in os.listdir("/proc"):
-        try:
-            cmd = open("/proc/%s/cmdline" % pid, "rb").read().split(b"\0")
-        except OSError:
-            continue
+    for pid, cmd in _command_lines():
         logs = [c.decode() for c in cmd if c.startswith(b"__log:=")]
         if b"__name:=firmware" in cmd and logs and "-firmware" in logs[0]:
-            out[os.path.basename(logs[0]).split("-firmware")[0]] = int(pid)
+            out[os.path.basename(logs[0]).split("-firmware")[0]] = pid
     return out
 
 
@@ -138,24 +176,14 @@ def cpu_seconds(pid):
     return (int(stat[11]) + int(stat[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def _firmware_pid(arm):
-    return firmware_processes().get(arm)
-
-
-def _kill_firmware_after(state, arm, seconds, fe):
-    """Wait until the arm's journal has beads, then ``seconds`` more; SIGKILL its firmware."""
+def _wait_for_beads(state, fe, arm="kinova"):
+    """Wait until the arm's deposit journal has beads (the print is under way)."""
     journal = os.path.join(state, "%s.beads" % arm)
     t_end = time.monotonic() + 300
     while time.monotonic() < t_end and fe.poll() is None:
         if os.path.exists(journal) and os.path.getsize(journal) > 0:
             break
         time.sleep(0.05)
-    time.sleep(seconds)
-    pid = _firmware_pid(arm)
-    if pid is None or fe.poll() is not None:
-        return 0
-    os.kill(pid, signal.SIGKILL)
-    return 1
 
 
 def by_line(journal):

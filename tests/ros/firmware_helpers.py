@@ -118,7 +118,10 @@ class Recorder:
 
     def _on_joints(self, msg, arm):
         index = {n: i for i, n in enumerate(msg.name)}
-        q = [msg.position[index[arm.prefix + j]] for j in arm.profile.joint_names]
+        try:
+            q = [msg.position[index[arm.prefix + j]] for j in arm.profile.joint_names]
+        except KeyError:           # a controller's joint states on the same topic (driver's names)
+            return
         with self._lock:
             self.joints[arm.name].append(np.array(q))
 

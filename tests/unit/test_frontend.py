@@ -8,6 +8,7 @@ the hub forwards them (``S0`` and the hub's own numbering).  Time is fake:
 a wait with nothing to deliver lets the clock run.
 The default cell: kinova = R1, ur10 = R2."""
 import itertools
+import json
 import os
 from collections import deque
 from dataclasses import replace
@@ -442,7 +443,8 @@ def test_link_numbers_retries_until_acked_and_gives_up():
     assert link.pending() == 1
     now[0] = 10.0
     link.tick()
-    assert link.poll() == [Undelivered("A1 R1 S1000 Q42", 3)] and link.pending() == 0
+    # as last transmitted: after Q41, which was then still unacknowledged
+    assert link.poll() == [Undelivered("A1 R1 S1000 Q42 B41", 3)] and link.pending() == 0
 
 
 def test_link_acknowledges_forwarded_reports_and_drops_duplicates():
@@ -457,3 +459,49 @@ def test_link_acknowledges_forwarded_reports_and_drops_duplicates():
     assert link.poll() == [Status(1, ArmState.PRINTING, 2, 30, 4.5, sender=0, seq=9),
                            ErrorReport(2, 5, "jam", sender=0, seq=10)]
     assert link.poll() == [] and len(link.malformed) == 1
+
+
+# ------------------------------------------------------------------ --follow (a replacement front end)
+
+def _progress(**arms):
+    ids = {"kinova": 1, "ur10": 2}
+    return json.dumps({"stamp": 1.0, "arms": {name: {"id": ids[name], "state": state, "layer": 3, "line": 40,
+                                                    "percent": pct, "eta_s": None, "updated": 1.0,
+                                                    "position": None, "error": err}
+                                             for name, (state, pct, err) in arms.items()}})
+
+
+def test_follow_attaches_to_a_running_job_and_sends_nothing(cell, jobs, tmp_path):
+    write_job(jobs["concurrent"], str(tmp_path))
+    link = FakeLink()
+    s = Session([], cell, link=link)
+    # the hub's latched progress: kinova finished before this front end came up
+    link.receive_progress(_progress(kinova=("DONE", 100.0, None), ur10=("PRINTING", 60.0, None)))
+    link.feed(Status(2, ArmState.PRINTING, 5, 80, 90.0), Status(2, ArmState.DONE, 6, 99, 100.0))
+    assert s.menu.attach(str(tmp_path)) == EXIT_OK
+    assert s.link.messages() == []                                   # no command sent
+    assert len(s.link.sent) == 2 and all(isinstance(decode(t), Ack) for t in s.link.sent)   # A8s of the reports
+    assert "print finished: every arm is DONE" in s.text and "attached to the job" in s.text
+
+
+def test_follow_reports_an_arm_error_known_to_the_hub(cell, jobs, tmp_path):
+    write_job(jobs["concurrent"], str(tmp_path))
+    link = FakeLink()
+    s = Session([], cell, link=link)
+    link.receive_progress(_progress(kinova=("ERROR", 30.0, {"line": 7, "message": "unreachable", "time": 0.5}),
+                                    ur10=("PRINTING", 60.0, None)))
+    assert s.menu.attach(str(tmp_path), timeout=5) == EXIT_FAILED
+    assert "kinova (R1) error at G-code line 7: unreachable" in s.errors[-1]
+
+
+def test_follow_without_progress_times_out_naming_the_silent_arms(cell, jobs, tmp_path):
+    write_job(jobs["concurrent"], str(tmp_path))
+    s = Session([], cell)
+    s.link.receive_progress("not json")
+    assert s.menu.attach(str(tmp_path), timeout=3) == EXIT_FAILED
+    assert "timed out" in s.errors[-1] and "silent" in s.errors[-1]
+
+
+def test_follow_with_a_bad_directory_is_bad_input(cell, tmp_path):
+    s = Session([], cell)
+    assert s.menu.attach(str(tmp_path / "none")) == EXIT_BAD_INPUT and "no such directory" in s.errors[-1]

@@ -48,7 +48,7 @@ def test_every_command_goes_to_its_arm_with_the_hubs_numbering(hub, command):
                        else command + " S1000 Q7", FRONT_END, now=0.0)
     assert posts[0] == Post(FE_IN, "A8 R1000 Q7 S0")                 # ack to the sender first
     [forwarded] = by_topic(posts, KINOVA_IN)
-    assert replace(decode(forwarded), sender=None, seq=None) == decode(command)
+    assert replace(decode(forwarded), sender=None, seq=None, after=None) == decode(command)
     assert (decode(forwarded).sender, decode(forwarded).seq) == (0, FIRST_Q)
     assert len(posts) == 2
 
@@ -144,6 +144,19 @@ def test_reordered_messages_are_each_forwarded_once(hub):
     for q in (7, 5, 6, 5, 7, 8):
         forwarded += by_topic(hub.handle("A1 R1 S1000 Q%d" % q, FRONT_END, 0.0), KINOVA_IN)
     assert len(forwarded) == 4
+
+
+def test_a_reordered_chain_is_forwarded_in_the_order_sent(hub):
+    """The front end's A1 overtakes its A5 on the way: the hub holds the A1
+    (no ack, nothing forwarded) until the A5 is in, then forwards both in
+    order, the A1 carrying B = the hub's number of the A5."""
+    held = hub.handle("A1 R2 S1000 Q8 B7", FRONT_END, 0.0)
+    assert held == []
+    posts = hub.handle("A5 R2 C1 S1000 Q7\nG1 X1 Y2 E0.1", FRONT_END, 0.0)
+    assert by_topic(posts, FE_IN) == ["A8 R1000 Q7 S0", "A8 R1000 Q8 S0"]
+    load, start = (decode(t) for t in by_topic(posts, UR10_IN))
+    assert (type(load).__name__, type(start).__name__) == ("LoadChunk", "Start")
+    assert (load.seq, start.seq, start.after) == (FIRST_Q, FIRST_Q + 1, FIRST_Q)
 
 
 def test_older_than_the_window_is_acked_and_reported(cell):
@@ -292,3 +305,19 @@ def test_eta_freezes_when_paused_is_zero_when_done_and_restarts_with_a_new_job(h
 def test_status_with_position_is_in_the_progress(hub):
     hub.handle("A10 R2 T0 L0 N0 P0 X1.5 Y-2 Z3", UR10, 0.0)
     assert progress(hub, 0.0)["arms"]["ur10"]["position"] == [1.5, -2.0, 3.0]
+
+
+# --- restart ------------------------------------------------------------------------------
+
+def test_a_restarted_hub_forwards_what_the_old_one_acknowledged_once_under_the_same_numbers(cell, hub):
+    posts = hub.handle("A5 R2 C1 S1000 Q7\nG1 X1 Y2 E0.1", FRONT_END, 0.0)
+    [fwd] = by_topic(posts, UR10_IN)
+    snap = json.loads(json.dumps(hub.snapshot()))          # what the ROS layer saved before publishing
+    # the old hub dies; the forward it published may or may not have arrived
+    new = Hub(cell, extra_callers=[TOOL], sender=Sender(topics.HUB_ID, first_seq=5))
+    new.restore(snap, now=10.0)
+    again = new.handle("A5 R2 C1 S1000 Q7\nG1 X1 Y2 E0.1", FRONT_END, 10.0)   # the front end's retry
+    assert by_topic(again, FE_IN) == ["A8 R1000 Q7 S0"] and by_topic(again, UR10_IN) == []   # not twice
+    assert by_topic(new.tick(10.0), UR10_IN) == [fwd]       # the unacknowledged forward, same Q
+    start = decode(by_topic(new.handle("A1 R2 S1000 Q8", FRONT_END, 10.0), UR10_IN)[0])
+    assert (start.seq, start.after) == (FIRST_Q + 1, FIRST_Q)   # numbering goes on, in order after the A5

@@ -164,29 +164,37 @@ def test_memory_is_the_window_per_sender():
 
 # --- both ends over a bad channel ------------------------------------------------------
 
+def _bad_channel(rng, tx, deliver):
+    """Transmit everything ``tx`` has pending until it is all acknowledged:
+    30 % of messages and of acks are lost, the rest arrive shuffled and
+    sometimes twice.  ``deliver(outgoing)`` -> [(message, Delivery)]."""
+    in_flight, now = list(tx.pending), 0.0
+    while tx.pending:
+        rng.shuffle(in_flight)
+        for out in in_flight:
+            for _ in range(rng.choice((1, 1, 2))):
+                if rng.random() < 0.3:
+                    continue
+                for _m, d in deliver(out):
+                    if d.ack is not None and rng.random() >= 0.3:
+                        tx.acknowledge(d.ack, acker=out.destination)
+        now += 0.1
+        in_flight = tx.due(now)
+
+
 def test_exactly_once_over_a_lossy_reordering_channel():
-    """30% of messages and of acks are lost, the rest arrive in random order
-    and sometimes twice; every message takes effect exactly once."""
-    rng = random.Random(4)
+    """Every message takes effect exactly once over the bad channel."""
     sender, receiver = Sender(0, first_seq=MAX_U32 - 20, max_tries=None), Receiver(1)
     executed = []
     for i in range(200):
         sender.send(Status(1, 1, i, 0, 0.0), destination=1, now=0.0)
-    in_flight = [o.message for o in sender.pending]
-    now = 0.0
-    while sender.pending:
-        rng.shuffle(in_flight)
-        for msg in in_flight:
-            for _ in range(rng.choice((1, 1, 2))):
-                if rng.random() < 0.3:
-                    continue
-                d = receiver.receive(msg)
-                if d.execute:
-                    executed.append(msg.layer)
-                if rng.random() >= 0.3:
-                    sender.acknowledge(d.ack)
-        now += 0.1
-        in_flight = [o.message for o in sender.due(now)]
+
+    def deliver(out):
+        d = receiver.receive(out.message)
+        if d.execute:
+            executed.append(out.message.layer)
+        return [(out.message, d)]
+    _bad_channel(random.Random(4), sender, deliver)
     assert sorted(executed) == list(range(200))
 
 
@@ -206,3 +214,68 @@ def test_receiver_and_sender_survive_a_restart_through_their_snapshots():
     assert [o.message for o in tx2.pending] == msgs                  # still to be acknowledged
     assert [o.message for o in tx2.due(1.0)] == msgs                 # sent again at once
     assert tx2.send(Start(2), 2, 1.0).message.seq == 102             # numbering goes on
+
+
+# --- order: the B word ------------------------------------------------------------------
+
+def test_b_names_the_previous_unacknowledged_message_to_the_same_destination():
+    tx = Sender(0, first_seq=10)
+    a = tx.send(Start(1), 1, 0.0).message
+    other = tx.send(Start(2), 2, 0.0).message          # another destination: its own chain
+    b = tx.send(Pause(1), 1, 0.0).message
+    assert (a.after, other.after, b.after) == (None, None, 10)
+    assert "B10" in encode(b) and decode(encode(b)) == b
+    tx.acknowledge(Ack(0, 10, 1))
+    assert tx.send(Start(1), 1, 0.0).message.after == 12     # 12 is still pending
+    tx.acknowledge(Ack(0, 12, 1))
+    c = tx.send(Pause(1), 1, 0.0).message
+    assert c.after == 13
+    tx.acknowledge(Ack(0, 13, 1))
+    assert [o.message.after for o in tx.due(1.0) if o.seq == 14] == [None]   # settled: B dropped
+
+
+def test_a_message_waits_for_its_predecessor_and_is_released_in_order():
+    tx, rx = Sender(0, first_seq=5), Receiver(1)
+    load, start, pause = (tx.send(m, 1, 0.0).message for m in (Status(1, 1, 0, 0, 0.0), Start(1), Pause(1)))
+    [(m, d)] = rx.deliver(pause)
+    assert m is pause and d.verdict is Verdict.HELD and d.ack is None and not d.execute
+    assert rx.deliver(pause)[0][1].verdict is Verdict.HELD           # its duplicate too
+    assert rx.deliver(start)[0][1].verdict is Verdict.HELD
+    out = rx.deliver(load)
+    assert [m for m, _ in out] == [load, start, pause]
+    assert all(d.verdict is Verdict.NEW and d.ack is not None for _, d in out)
+    assert [d.verdict for _, d in rx.deliver(start)] == [Verdict.DUPLICATE]
+
+
+def test_a_predecessor_older_than_the_window_counts_as_done():
+    rx = Receiver(1, window=8)
+    rx.receive(Start(1, sender=0, seq=100))
+    msg = Start(1, sender=0, seq=101, after=90)            # 90 is 10 behind the top: too old to tell
+    assert [d.verdict for _, d in rx.deliver(msg)] == [Verdict.NEW]
+
+
+def test_b_needs_q():
+    from ambots.errors import ProtocolError
+    with pytest.raises(ProtocolError, match="B"):
+        Start(1, sender=0, after=3)
+    with pytest.raises(ProtocolError, match="B"):
+        decode("A1 R1 S0 B3")
+
+
+def test_in_order_exactly_once_over_a_lossy_reordering_channel():
+    """Two destinations share one sender's numbers; over the bad channel each
+    destination executes every message of its own once, in the order sent."""
+    rng = random.Random(11)
+    tx = Sender(0, first_seq=MAX_U32 - 50, max_tries=None)
+    rxs = {1: Receiver(1), 2: Receiver(2)}
+    executed = {1: [], 2: []}
+    for i in range(300):
+        tx.send(Status(1, 1, i, 0, 0.0), destination=rng.choice((1, 2)), now=0.0)
+    sent = {d: [o.message.layer for o in tx.pending if o.destination == d] for d in (1, 2)}
+
+    def deliver(out):
+        got = rxs[out.destination].deliver(out.message)
+        executed[out.destination].extend(m.layer for m, d in got if d.execute)
+        return got
+    _bad_channel(rng, tx, deliver)
+    assert executed == sent

@@ -617,3 +617,58 @@ def bead_end_before_barrier(r):
     """Time the arm completed the last line before the barrier."""
     t, lines = concat(r.beads, "t"), concat(r.beads, "line")
     return float(t[lines < BARRIER_LINE].max())
+
+
+# ------------------------------------------------- another arm in the way (real-time planning)
+class OtherArmInTheWay:
+    """is_valid for a planner: while ``blocked``, every joint vector farther
+    than 0.3 rad from ``free`` is taken by another arm; ``static`` (no other
+    arms) is always clear."""
+
+    def __init__(self, free):
+        self.free, self.blocked, self.calls = np.asarray(free, float), True, 0
+
+    def __call__(self, Q):
+        Q = np.atleast_2d(Q)
+        self.calls += 1
+        if not self.blocked:
+            return np.ones(len(Q), dtype=bool)
+        return np.linalg.norm(Q - self.free, axis=1) <= 0.3
+
+    def static(self, Q):
+        return np.ones(len(np.atleast_2d(Q)), dtype=bool)
+
+
+def test_a_move_blocked_only_by_another_arm_waits_and_goes_on(arm, cell, reference):
+    check = OtherArmInTheWay(arm.profile.home)
+    r = new_runner(arm, cell, MotionPlanner(arm, cell, is_valid=check))
+    load_and_start(r)
+    run(r, until=3.0)
+    assert r.state is ArmState.PRINTING and not r.beads and r.q.tolist() == list(arm.profile.home)
+    assert r.stats.idle_time_s >= 2.0 and r.blocked_s >= 2.0       # waited in place
+    check.blocked = False                                            # the other arm moved on
+    run(r)
+    assert r.state is ArmState.DONE and not messages(r, ErrorReport)
+    assert r.blocked_s == 0.0
+    assert bead_filament_by_line(r.beads) == pytest.approx(bead_filament_by_line(reference.beads))
+    np.testing.assert_allclose(concat(r.beads, "p1"), concat(reference.beads, "p1"), atol=1e-9)
+
+
+def test_a_move_blocked_for_too_long_is_an_error_naming_its_line(arm, cell):
+    r = new_runner(arm, cell, MotionPlanner(arm, cell, is_valid=OtherArmInTheWay(arm.profile.home)))
+    r.max_blocked_s = 2.0
+    load_and_start(r)
+    run(r, t_max=20.0)
+    assert r.state is ArmState.ERROR
+    [err] = messages(r, ErrorReport)
+    assert err.line == 6 and "other arms blocked the way for 2 s" in err.message
+
+
+def test_a_move_blocked_by_the_bed_itself_is_an_error_at_once(arm, cell):
+    check = OtherArmInTheWay(arm.profile.home)
+    check.static = check.__call__                       # no other arm: the obstacle is static
+    r = new_runner(arm, cell, MotionPlanner(arm, cell, is_valid=check))
+    load_and_start(r)
+    run(r, t_max=20.0)
+    assert r.state is ArmState.ERROR and r.clock < 1.0
+    assert "no collision-free path" in messages(r, ErrorReport)[0].message

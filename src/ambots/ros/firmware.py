@@ -38,6 +38,12 @@ hub, publishing joint states, the deposit and run statistics.
 * Travel and joint moves are planned around obstacles: the bed and the
   other arms of the cell at their latest joint states (subscribed), with
   ``clearance_mm`` of margin (:mod:`ambots.collision`).
+* ``driver``: ``"sim"`` (the above: the arm is simulated, joint states are
+  the runner's) or ``"trajectory"`` (real time only): the motion also goes
+  to the arm's joint trajectory controller as JointTrajectory chunks, the
+  extruder's in step, and the controller's joint states are read back
+  (:mod:`ambots.ros.driver`); pause (A2) brakes after what was sent, to
+  rest at the end of a G-code line, A4 while moving brakes at once.
 """
 import json
 import queue
@@ -57,9 +63,10 @@ from ambots.checkpoint import StateStore
 from ambots.collision import ArmBody, bed_clearance, clearance_between
 from ambots.errors import ProtocolError
 from ambots.motion import MotionPlanner
-from ambots.protocol import (HUB, Ack, ArmState, ClearChunk, LoadChunk, SendPosition, Start, Status, decode,
-                             encode)
+from ambots.protocol import (HUB, Ack, ArmState, ClearChunk, LoadChunk, Pause, SendPosition, Start, Status,
+                             decode, encode)
 from ambots.reliable import Receiver, Sender, Verdict, seq_seed
+from ambots.ros.driver import DRIVERS, TrajectoryDriver
 from ambots.runner import ArmRunner, Bead, RunStats
 from ambots.rviz import DEPOSIT_TOPIC
 from ambots.units import MM
@@ -167,9 +174,15 @@ class CollisionCheck:
     def update(self, name, q):
         self.q_other[name] = np.asarray(q, dtype=float)
 
+    def static(self, Q):
+        """The same check without the other arms (they move on; the planner
+        waits for them instead of failing)."""
+        Q = np.atleast_2d(np.asarray(Q, dtype=float))
+        return bed_clearance(self.body, Q, self.cell) >= 0.0
+
     def __call__(self, Q):
         Q = np.atleast_2d(np.asarray(Q, dtype=float))
-        ok = bed_clearance(self.body, Q, self.cell) >= 0.0
+        ok = self.static(Q)
         for name, q in list(self.q_other.items()):
             if ok.any():
                 ok &= clearance_between(self.body, Q, self.others[name], np.tile(q, (len(Q), 1))) >= self.margin
@@ -185,11 +198,15 @@ class FirmwareNode:
     speed : simulated seconds per wall second, or None for as fast as possible
     rate : ticks (and joint states) per wall second
     max_step : simulated seconds per iteration at ``speed`` None
+    driver : ``"sim"`` or ``"trajectory"`` (:mod:`ambots.ros.driver`; needs ``speed`` 1)
+    chunk_duration, command_delay : s of motion per JointTrajectory; s the
+        controller executes after the firmware's clock (``trajectory``)
     """
 
     def __init__(self, arm, cell, speed=1.0, rate=50.0, max_step=2.0, report_period=1.0,
                  marker_rate=4.0, bead_width_mm=0.45, clearance_mm=5.0, max_beads=2000,
-                 retry_period=0.05, max_tries=None, state_dir=None, run_id="", slowdown=1.0):
+                 retry_period=0.05, max_tries=None, state_dir=None, run_id="", slowdown=1.0,
+                 driver="sim", chunk_duration=0.5, command_delay=0.3):
         self.arm, self.cell = arm, cell
         self.speed, self.rate, self.max_step = speed, float(rate), float(max_step)
         self.report_period, self.marker_period = report_period, 1.0 / marker_rate
@@ -217,6 +234,16 @@ class FirmwareNode:
         self._names = {a.id: a.name for a in cell.arms}
         self._thread = None
         self._traced = (None, None)
+        self._late = False
+        self.driver = None
+        if driver not in DRIVERS:
+            raise ValueError("driver must be one of %s, got %r" % (", ".join(DRIVERS), driver))
+        if driver == "trajectory":
+            if speed != 1.0:
+                raise ValueError("driver trajectory drives a real arm in real time: speed must be 1, got %s"
+                                 % ("max" if speed is None else speed))
+            self.driver = TrajectoryDriver(arm, self.runner.planner, chunk_duration, command_delay)
+        self._chunks = []
 
     # ------------------------------------------------------------- ROS
     def start(self):
@@ -240,6 +267,8 @@ class FirmwareNode:
             if other.name != arm.name:
                 rospy.Subscriber(topics.joint_states_topic(other.name), JointState,
                                  self._on_other_joints, callback_args=other, queue_size=1)
+        if self.driver is not None:
+            self.driver.start(self.runner)
         rospy.Subscriber(topics.arm_topic(arm.name), String, self._on_inbox, queue_size=1000)
         with self.lock:
             self._outgoing = [self.runner.status(with_position=True)]   # here I am
@@ -276,19 +305,21 @@ class FirmwareNode:
         self._wake.set()
 
     def _receive(self, message, data):
-        """One numbered command from the inbox (loop thread, lock held):
-        returns the A8 to send once the step is checkpointed (or None)."""
+        """One numbered command from the inbox (loop thread, lock held), and
+        the commands it releases (held behind it for order): returns the
+        A8s to send once the step is checkpointed."""
         with self._io:
-            delivery = self.receiver.receive(message)
-        if delivery.verdict is Verdict.NEW:
-            self._apply(message)
-        elif delivery.verdict is Verdict.STALE:
-            rospy.logwarn("%s firmware: Q%d of node %d is older than the window: not executed",
-                          self.arm.name, message.seq, message.sender or 0)
-        elif delivery.verdict is Verdict.UNNUMBERED:
-            rospy.logwarn("%s firmware: ignored unnumbered %r (everything comes numbered through the hub)",
-                          self.arm.name, data[:80])
-        return delivery.ack
+            deliveries = self.receiver.deliver(message)
+        for m, delivery in deliveries:
+            if delivery.verdict is Verdict.NEW:
+                self._apply(m)
+            elif delivery.verdict is Verdict.STALE:
+                rospy.logwarn("%s firmware: Q%d of node %d is older than the window: not executed",
+                              self.arm.name, m.seq, m.sender or 0)
+            elif delivery.verdict is Verdict.UNNUMBERED:
+                rospy.logwarn("%s firmware: ignored unnumbered %r (everything comes numbered through the hub)",
+                              self.arm.name, data[:80])
+        return [d.ack for _, d in deliveries if d.ack is not None]
 
     # ------------------------------------------------------------- the loop
     def _apply(self, message):
@@ -300,6 +331,9 @@ class FirmwareNode:
                 and r.state in (ArmState.IDLE, ArmState.DONE):
             self._new_run()                   # a new run: new markers, its own statistics
             r.stats = RunStats()
+        stop_q = None
+        if self.driver is not None and isinstance(message, ClearChunk) and message.robot == self.arm.id:
+            stop_q = self.driver.abort(r, self.sim_now)       # the arm was moving: it brakes
         if isinstance(message, Status) and message.robot != self.arm.id:
             name = message.state.name
             if self.peers.get(message.robot) != name:
@@ -309,6 +343,10 @@ class FirmwareNode:
                     rospy.logwarn("%s firmware: arm %s (R%d) stopped with an error", self.arm.name,
                                   self._names.get(message.robot, "?"), message.robot)
         r.handle(message, now=self.sim_now)
+        if stop_q is not None:
+            r.q = stop_q
+        if self.driver is not None and isinstance(message, Pause) and message.robot == self.arm.id:
+            self.driver.pause(r, self.sim_now)
         if isinstance(message, LoadChunk) and self.store is not None and r.chunk == message.identity:
             self.store.save_chunk(message.identity, message.gcode)
 
@@ -319,11 +357,13 @@ class FirmwareNode:
         acks = []
         while True:
             try:
-                ack = self._receive(*self._commands.get_nowait())
+                acks += self._receive(*self._commands.get_nowait())
             except queue.Empty:
                 break
-            if ack is not None:
-                acks.append(ack)
+        if self.driver is not None and r.block is None:
+            q = self.driver.rest_joints(r, rospy.get_time())    # where the controller says the arm rests
+            if q is not None:
+                r.q = q
         release = r.release_time()
         if self.speed is None and (r.state is ArmState.PRINTING or release is not None):
             # as fast as possible: the arm's clock runs ahead of the wall; a
@@ -335,6 +375,9 @@ class FirmwareNode:
         else:
             self.sim_now += (self.speed or 1.0) * dt
             r.advance(self.sim_now)
+        if self.driver is not None:
+            self._chunks = self.driver.update(self.sim_now)
+            self._chunks_at = (self.sim_now, rospy.get_time())
         out = [m for _, m in r.outbox]
         r.outbox.clear()
         trace = beads = None
@@ -394,6 +437,13 @@ class FirmwareNode:
                 rospy.signal_shutdown("firmware loop failed: %s" % exc)
                 raise
             last = wall
+            if self._chunks:
+                self.driver.publish(self._chunks, *self._chunks_at)
+                self._chunks = []
+                if self.driver.min_lead is not None and self.driver.min_lead < 0 and not self._late:
+                    self._late = True
+                    rospy.logwarn("%s firmware: a trajectory chunk was sent %.3f s after its start: raise "
+                                  "~command_delay", self.arm.name, -self.driver.min_lead)
             for a in acks:
                 self._to_hub.publish(String(encode(a)))
             for o in numbered:
@@ -411,6 +461,12 @@ class FirmwareNode:
             if wall >= next_joints:
                 next_joints = max(next_joints + period, wall)
                 self._js.header.stamp = rospy.Time.now()
+                if self.driver is not None:          # the controller's joints, else what it was told
+                    measured = self.driver.measured()
+                    if measured is None:
+                        measured = self.driver.commanded(self._js.header.stamp.to_sec())
+                    if measured is not None:
+                        q = measured
                 self._js.position = [float(v) for v in q]
                 self._joints.publish(self._js)
             if markers is not None:
@@ -496,6 +552,7 @@ class FirmwareNode:
             "speed": "max" if self.speed is None else self.speed, "beads": self.markers.n_beads,
             "stats": asdict(r.stats),
             "peers": {self._names.get(i, str(i)): s for i, s in sorted(self.peers.items())},
+            "driver": self.driver.stats() if self.driver is not None else {"driver": "sim"},
         })
 
     def publish_all_markers(self, publish):

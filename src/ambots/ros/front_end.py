@@ -3,7 +3,8 @@
 (the hub knows the front end by its node name ``/front_end``), a subscriber
 on ``topics.FRONT_END_TOPIC`` (the hub's acks of our messages, and the arms'
 A10/A11 it forwards, which the link acknowledges with ``A8 R0 Q<q> S1000``
-back to the hub), and a timer for retransmissions."""
+back to the hub), a subscriber on the hub's progress (``--follow``), and a
+timer for retransmissions."""
 import rospy
 from std_msgs.msg import String
 
@@ -21,6 +22,8 @@ class RosLink(ReliableLink):
         self._pub = rospy.Publisher(topics.HUB_TOPIC, String, queue_size=100)
         super().__init__(self._publish, **kw)
         self._sub = rospy.Subscriber(topics.FRONT_END_TOPIC, String, self._on_message, queue_size=1000)
+        self._progress_sub = rospy.Subscriber(topics.PROGRESS_TOPIC, String,
+                                              lambda msg: self.receive_progress(msg.data), queue_size=1)
         self._timer = rospy.Timer(rospy.Duration(retry_period), self._on_timer)
 
     def _publish(self, text):
@@ -45,4 +48,5 @@ class RosLink(ReliableLink):
     def close(self):
         self._timer.shutdown()
         self._sub.unregister()
+        self._progress_sub.unregister()
         self._pub.unregister()

@@ -8,7 +8,14 @@ that is active, everything the hub receives passes through one
 :class:`~ambots.faults.FaultyChannel` and everything it publishes on the
 arms' and the front end's inboxes through another (progress and error
 topics are not faulted); a fast timer releases what is due.  The counts
-are in the progress JSON under ``"faults"``."""
+are in the progress JSON under ``"faults"``.
+
+Crash safety (``state_file``): before the hub publishes anything that
+answers a message -- acks, forwards -- it writes :meth:`ambots.hub.Hub.snapshot`
+(duplicate windows, unacknowledged forwards) atomically to ``state_file``
+with the ROS run id.  A hub restarted in the same run (roslaunch respawn
+after ``kill -9``) restores it: what the old hub acknowledged is forwarded,
+once, under the numbers the old hub gave it."""
 import json
 import threading
 
@@ -16,6 +23,7 @@ import rospy
 from std_msgs.msg import String
 
 from ambots import topics
+from ambots.checkpoint import read_json, write_json
 from ambots.faults import FaultSpec, FaultyChannel
 
 
@@ -25,8 +33,11 @@ class HubNode:
     progress is republished.  rospy calls back from several threads, so
     every call into the hub holds one lock."""
 
-    def __init__(self, hub, retry_period=0.05, progress_period=1.0, faults=FaultSpec()):
+    def __init__(self, hub, retry_period=0.05, progress_period=1.0, faults=FaultSpec(), state_file=None,
+                 run_id=""):
         self.hub = hub
+        self.state_file, self.run_id = state_file, run_id
+        self.resumed = False
         self.retry_period, self.progress_period = retry_period, progress_period
         self._lock = threading.Lock()
         self._pubs = {}
@@ -37,7 +48,16 @@ class HubNode:
         self.retries = 0
 
     def start(self):
-        """Advertise, subscribe and start the timers."""
+        """Restore the state of a crashed predecessor (same ROS run), then
+        advertise, subscribe and start the timers."""
+        if self.state_file:
+            doc = read_json(self.state_file)
+            if doc is not None and doc.get("run_id") == self.run_id:
+                self.hub.restore(doc["hub"], rospy.get_time())
+                self.resumed = True
+                rospy.logwarn("communication hub: resumed from its checkpoint (%d forwards to deliver)",
+                              len(self.hub.sender.pending))
+        self._inboxes = set(self.hub.registry.inboxes)
         for topic in self.hub.registry.inboxes + [topics.ERROR_TOPIC]:
             self._pubs[topic] = rospy.Publisher(topic, String, queue_size=1000)
         self._pubs[topics.PROGRESS_TOPIC] = rospy.Publisher(topics.PROGRESS_TOPIC, String,
@@ -60,8 +80,10 @@ class HubNode:
     def _on_fault_timer(self, _event):
         with self._lock:
             now = rospy.get_time()
+            posts = []
             for text, caller in self._in.pop_due(now):
-                self._publish(self.hub.handle(text, caller, now))
+                posts += self.hub.handle(text, caller, now)
+            self._publish(posts)                  # one save for the batch
             for post in self._out.pop_due(now):
                 self._pubs[post.topic].publish(String(post.text))
 
@@ -69,7 +91,7 @@ class HubNode:
         with self._lock:
             posts = self.hub.tick(rospy.get_time())
             self.retries += sum(1 for p in posts if p.topic != topics.ERROR_TOPIC)
-            self._publish(posts)
+            self._publish(posts, save=False)     # retransmissions: nothing new to save
 
     def _on_progress_timer(self, _event):
         with self._lock:
@@ -78,13 +100,20 @@ class HubNode:
     def progress_json(self):
         """The hub's progress JSON plus its delivery counts (lock held)."""
         doc = json.loads(self.hub.progress_json(rospy.get_time()))
-        doc["hub"] = {"retries": self.retries}
+        doc["hub"] = {"retries": self.retries, "resumed": self.resumed}
         if self.faults:
             doc["faults"] = {"spec": str(self.faults), "in": self._in.counts.as_dict(),
                              "out": self._out.counts.as_dict()}
         return json.dumps(doc)
 
-    def _publish(self, posts):
+    def _save(self):
+        write_json(self.state_file, {"run_id": self.run_id, "hub": self.hub.snapshot()})
+
+    def _publish(self, posts, save=True):
+        """Publish ``posts`` (lock held); with a state file, the state that
+        produced them is saved first."""
+        if save and self.state_file and any(p.topic in self._inboxes for p in posts):
+            self._save()
         now = rospy.get_time()
         for post in posts:
             if post.topic == topics.ERROR_TOPIC:
