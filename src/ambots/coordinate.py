@@ -550,7 +550,9 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=
     retreat), so the spacing holds whatever the timing.  That is the only
     wait: an arm moving away only widens the gap, so it goes on at once (it
     can get at most one phase ahead: at the next layer it moves towards the
-    seam and waits)."""
+    seam and waits).  At the end, the arms that finish away from their
+    seams park only when their neighbours (which finish at the seams) are
+    done."""
     names = [a.name for a in arms]
     if zones is None:
         zones = {}
@@ -636,6 +638,7 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=
     parks_first, park_waits = _banded_start(arms, names, steps, planes, adjacent, home, n_layers, k, bounds,
                                             pair_zone)
     writers, approach_end, slots, park_report, park_slots = {}, {}, {}, {}, {}
+    end_slots = []
     for a in arms:
         w_ = _Writer()
         for line in _header(a, "concurrent", ["; seam zone %.1f mm, %d band(s) per layer from %s mm, colour %d"
@@ -677,8 +680,19 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=
                     w_.emit(directive(SendPosition(other.id)))
                 approach_end[a.name, layer, p] = len(w_.lines)
                 w_.segments(segs)
+        if n_layers and (colour[a.name] + n_layers - 1) % 2 == 0:
+            # this arm ends the last layer away from its seams and its neighbours at
+            # them: it parks only when they are done (a joint move to the park
+            # position is not a straight line, and it would pass them at work)
+            for other in arms:
+                if other.name in adjacent[a.name]:
+                    end_slots.append((a.name, other.name, len(w_.lines)))
+                    w_.lines.append(None)
         _finish(w_, a, park)
         writers[a.name] = w_
+    for name, other, index in end_slots:       # the other arm's last line: it reports it when done
+        writers[name].lines[index] = directive(WaitFor(_arm_id(arms, name), _arm_id(arms, other),
+                                                       line=len(writers[other].lines)))
     programs = {}
     is_wait = {n: [line is None for line in writers[n].lines] for n in names}
     for a in arms:

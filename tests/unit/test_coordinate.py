@@ -209,13 +209,24 @@ def test_concurrent_programs_never_deadlock_and_barriers_hold(cell, job, seed):
     parts, sliced = job
     programs = build_programs(sliced, parts, cell, mode="concurrent", zone_mm=20.0)
     execute(programs, random.Random(seed))
+    by_id = {p.arm.id: p for p in programs.values()}
     for prog in programs.values():
         waits = [decode(l[2:]) for l in prog.lines if l.startswith(";@A9")]
         k = prog.phases
+        # the arm that ends the last layer away from the seam parks once the other is done
+        done = [w for w in waits if w.line == len(by_id[w.other].lines)]
+        assert len(done) <= 1
+        if done:      # after its last bead, before it parks (the last line)
+            at = max(i for i, l in enumerate(prog.lines) if l.startswith(";@A9") and decode(l[2:]) == done[0])
+            assert at > max(i for i, l in enumerate(prog.lines) if l.startswith("G1 X"))
+            assert prog.lines[-1].startswith(";@A7") and not any(l.startswith(";@A9") for l in prog.lines[at + 1:])
+        waits = [w for w in waits if w not in done]
         # an arm waits (for its neighbour's approach) before every phase that moves it
         # towards the seam: k - 1 phases in each of the 2 layers of 4 it sweeps towards it
         assert len(waits) == 2 * (k - 1) and all(isinstance(w, WaitFor) and w.robot == prog.arm.id for w in waits)
         assert [w.line for w in waits] == sorted(w.line for w in waits)
+    assert sum(1 for p in programs.values() for l in p.lines
+               if l.startswith(";@A9") and decode(l[2:]).line == len(by_id[decode(l[2:]).other].lines)) == 1
 
 
 def test_sequential_is_the_original_hand_over(cell, job):
@@ -370,7 +381,7 @@ def test_every_wait_names_a_line_the_other_arm_reports(n_arm_jobs, job, cell):
                 w = decode(line[2:])
                 other = by_id[w.other].lines
                 target = other[w.line - 1]
-                reported = target.startswith(";@A3") or (
+                reported = target.startswith(";@A3") or w.line == len(other) or (     # (last line: when done)
                     not target.startswith(";@") and w.line < len(other) and other[w.line].startswith(";@A9"))
                 assert reported, "R%d waits for line %d of R%d: %r" % (w.robot, w.line, w.other, target)
 
