@@ -433,11 +433,9 @@ class MotionPlanner:
                 return self._still(q0, line, layer, MotionError(line, "unreachable: %s" % exc))
         return self._joint_path(q0, q1, line, layer)
 
-    def joint_path(self, q0, q1, line=0, layer=0):
-        """Timed joint-space path q0 -> q1 (straight if clear, else OMPL)."""
-        return self._timed(self._joint_path(q0, q1, line, layer))
-
     def _joint_path(self, q0, q1, line=0, layer=0):
+        """Joint-space path q0 -> q1 (straight if clear, else OMPL), timed
+        from the joint limits (the caller applies the planner's ``timing``)."""
         from ambots.planning import JointPlanner, PlanningError, interpolate, time_parametrize
         path, how = np.array([q0, q1]), "joint"
         if self.is_valid is not None:

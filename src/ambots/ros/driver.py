@@ -173,13 +173,13 @@ class TrajectoryDriver:
             ext = JointTrajectory()
             ext.header.stamp = traj.header.stamp
             ext.joint_names = [self.spec.extruder_joint]
-            rel = (t_ns - t_ns[0]).tolist()
-            for i, d in enumerate(rel):
+            # one conversion of each array to Python floats, then one point per sample
+            for d, q, v, a, e, de in zip((t_ns - t_ns[0]).tolist(), c.q.tolist(), c.v.tolist(), c.a.tolist(),
+                                         np.asarray(c.e, float).tolist(), np.asarray(c.de, float).tolist()):
                 tfs = _duration(d)
-                traj.points.append(JointTrajectoryPoint(positions=c.q[i].tolist(), velocities=c.v[i].tolist(),
-                                                        accelerations=c.a[i].tolist(), time_from_start=tfs))
-                ext.points.append(JointTrajectoryPoint(positions=[float(c.e[i])], velocities=[float(c.de[i])],
-                                                       time_from_start=tfs))
+                traj.points.append(JointTrajectoryPoint(positions=q, velocities=v, accelerations=a,
+                                                        time_from_start=tfs))
+                ext.points.append(JointTrajectoryPoint(positions=[e], velocities=[de], time_from_start=tfs))
             lead = t_ns[0] / NS - rospy.get_time()
             self.min_lead = lead if self.min_lead is None else min(self.min_lead, lead)
             self._cmd.publish(traj)
