@@ -5,7 +5,11 @@ SHELL := /bin/bash
 
 ROOT   := $(abspath .)
 VENV   := $(ROOT)/.venv
-WS     := $(ROOT)/.ws
+# The catkin workspace lives outside the package tree, one per clone: inside it,
+# rosrun's search (find -L over the package) met the workspace's own copies of
+# every node and a link loop back to the package.  `source env.bash` finds it.
+AMBOTS_WS ?= $(or $(XDG_CACHE_HOME),$(HOME)/.cache)/ambots/ws-$(shell printf %s '$(ROOT)' | md5sum | cut -c1-12)
+WS     := $(AMBOTS_WS)
 PY     := $(VENV)/bin/python
 SITE   := $(VENV)/lib/python3.11/site-packages
 # Debian 12's own ROS 1 and tools (see README for Ubuntu 20.04 + Noetic)
@@ -14,12 +18,12 @@ APT_PACKAGES := ros-core catkin python3-rospy python3-roslaunch python3-rostest 
   python3-std-msgs python3-geometry-msgs python3-sensor-msgs python3-trajectory-msgs \
   python3-visualization-msgs python3-pykdl python3-numpy python3-yaml \
   python3-catkin-pkg librostest-dev python3-venv python3-dev ros-robot-state-publisher rviz xvfb \
-  prusa-slicer cmake g++ make
+  python3-rosgraph python3-roslib python3-rospkg prusa-slicer cmake g++ make rosbash
 # everything a command needs: the workspace (ROS_PACKAGE_PATH, PYTHONPATH) and
 # the venv first on PATH (done by the package's catkin env hook)
 ROSENV := source $(WS)/devel/setup.bash &&
 
-.PHONY: help setup apt venv workspace test unit rostest bench faults demo print clean
+.PHONY: help setup apt venv workspace ws-path apt-packages test unit rostest bench faults demo print clean
 
 help:
 	@echo "make setup  - install what is missing (apt, .venv, catkin workspace)"
@@ -56,7 +60,9 @@ $(VENV)/.done: requirements.txt | apt
 
 workspace: $(WS)/devel/.done
 $(WS)/devel/.done: package.xml CMakeLists.txt setup.py $(wildcard nodes/* tests/ros/*.test config/env-hooks/*) | apt venv
-	mkdir -p $(WS)/src && ln -sfn ../.. $(WS)/src/ambots
+	@# a workspace of the old layout inside the package (.ws/) would be searched by rosrun again
+	rm -rf $(ROOT)/.ws
+	mkdir -p $(WS)/src && ln -sfn $(ROOT) $(WS)/src/ambots
 	cd $(WS) && catkin_make -DPYTHON_EXECUTABLE=/usr/bin/python3 -DCATKIN_ENABLE_TESTING=ON > build.log 2>&1 \
 	  || { tail -40 build.log; exit 1; }
 	touch $@
@@ -77,12 +83,14 @@ bench: setup
 faults: setup
 	$(ROSENV) cd $(ROOT) && $(PY) tests/bench/run.py faults
 
+# DEMO_OUT: where the demo writes (tests/ros/test_demo.py runs `make demo` into a temporary folder)
+DEMO_OUT ?= out/demo
 demo: setup
-	rm -rf out/demo && mkdir -p out/demo
-	$(ROSENV) cd $(ROOT) && roslaunch ambots demo.launch out:=$(ROOT)/out/demo
-	@ls -l out/demo && $(PY) -c "import json; r = json.load(open('out/demo/report.json')); \
-	  print('finished:', r['finished'], '| makespan', r['makespan_s'], 's | collisions', r['collisions'], \
-	        '| min clearance', r['min_clearance_mm'], 'mm | wall', r['wall_time_s'], 's')"
+	@rm -rf "$(DEMO_OUT)" && mkdir -p "$(DEMO_OUT)"
+	@echo "make demo: the demo model printed by both arms, headless (about a minute); log in $(DEMO_OUT)/launch.log"
+	@$(ROSENV) roslaunch ambots demo.launch out:="$(abspath $(DEMO_OUT))" > "$(DEMO_OUT)/launch.log" 2>&1 \
+	  || { tail -30 "$(DEMO_OUT)/launch.log"; echo "roslaunch failed: whole log in $(DEMO_OUT)/launch.log"; }
+	@echo; $(PY) -m ambots summary --capture "$(DEMO_OUT)"
 
 # any model, the same way: make print MODEL=path [CELL=...] [MODE=...] [SLICER=...] [SPEED=max] OUT=dir
 MODE ?= concurrent
@@ -90,9 +98,18 @@ SLICER ?= builtin
 SPEED ?= max
 print: setup
 	@[ -n "$(MODEL)" ] && [ -n "$(OUT)" ] || { echo "usage: make print MODEL=path OUT=dir [CELL=...] [MODE=...] [SLICER=...]"; exit 2; }
-	mkdir -p "$(OUT)"
-	$(ROSENV) roslaunch ambots demo.launch out:="$(abspath $(OUT))" model:="$(abspath $(MODEL))" \
-	  mode:=$(MODE) slicer:=$(SLICER) speed:=$(SPEED) $(if $(CELL),cell:="$(abspath $(CELL))")
+	@mkdir -p "$(OUT)"
+	@echo "make print: $(MODEL) headless; log in $(OUT)/launch.log"
+	@$(ROSENV) roslaunch ambots demo.launch out:="$(abspath $(OUT))" model:="$(abspath $(MODEL))" \
+	  mode:=$(MODE) slicer:=$(SLICER) speed:=$(SPEED) $(if $(CELL),cell:="$(abspath $(CELL))") \
+	  > "$(OUT)/launch.log" 2>&1 || { tail -30 "$(OUT)/launch.log"; echo "roslaunch failed: whole log in $(OUT)/launch.log"; }
+	@echo; $(PY) -m ambots summary --capture "$(OUT)"
+
+# where the workspace is (env.bash asks), and what apt installs (tests/unit/test_dependencies.py asks)
+ws-path:
+	@echo $(WS)
+apt-packages:
+	@echo $(APT_PACKAGES)
 
 clean:
 	rm -rf $(WS) out

@@ -7,7 +7,7 @@ from ambots import __version__
 from ambots.errors import AmbotsError
 
 #: modules of :mod:`ambots.commands`, in the order ``--help`` lists them
-COMMANDS = ("cell", "info", "slice", "plan", "export")
+COMMANDS = ("cell", "info", "slice", "plan", "export", "summary")
 
 
 def build_parser():

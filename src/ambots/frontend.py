@@ -508,6 +508,11 @@ class Menu:
             self.say("  %-8s R%-3d %10.0f %7d %7d %11.1f %9.0f %s" % (
                 name, a["id"], a["part_volume_mm3"], a["layers"], len(p.lines), a["extruded_filament_mm"],
                 a["print_time_s"], "by A1" if p.start_first else "after another arm"))
+        alone = summary.get("one_arm_estimate_s")
+        if alone:
+            longest = max(a["print_time_s"] for a in summary["arms"].values())
+            self.say("  one arm alone would take about %.0f s; the longest arm here %.0f s (estimates at the "
+                     "programmed feeds)" % (alone, longest))
         self.say("wrote %s" % ", ".join(os.path.join(out, n) for n in
                                        [a + ".gcode" for a in self.programs] + ["job.json"]))
         return True

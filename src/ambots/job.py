@@ -17,7 +17,8 @@ from ambots.units import m_to_mm
 #: print at the same time (they must stay ~90 mm apart, see coordinate.py)
 DEMO_MODEL = "config/models/demo_block.stl"
 
-__all__ = ["DEMO_MODEL", "Job", "prepare_model", "split", "slice_parts", "coordinate", "run_job", "write_job"]
+__all__ = ["DEMO_MODEL", "Job", "prepare_model", "split", "slice_parts", "estimate_one_arm", "coordinate",
+           "run_job", "write_job"]
 
 
 @dataclass
@@ -33,12 +34,16 @@ class Job:
     parts: list = field(default_factory=list)      #: partition.Part per arm
     sliced: Dict[str, str] = field(default_factory=dict)
     programs: dict = field(default_factory=dict)   #: arm name -> coordinate.ArmProgram
+    #: one arm printing the whole model: its G-code's time at the programmed
+    #: feeds (``gcode.summarize``), s; None for a one-arm job
+    one_arm_estimate_s: float = None
 
     def summary(self):
         """Per-arm figures of the programs (``python -m ambots info`` keys)."""
         from ambots.gcode import parse_gcode_text, summarize
         out = {"model": self.model_path, "cell": self.cell.name, "mode": self.mode, "slicer": self.slicer,
-               "model_volume_mm3": float(self.mesh.volume) if self.mesh is not None else None, "arms": {}}
+               "model_volume_mm3": float(self.mesh.volume) if self.mesh is not None else None,
+               "one_arm_estimate_s": self.one_arm_estimate_s, "arms": {}}
         for part in self.parts:
             name = part.arm.name
             s = summarize(parse_gcode_text(self.programs[name].text, name + ".gcode"))
@@ -77,6 +82,15 @@ def slice_parts(parts, slicer="builtin", settings=None):
     return {p.arm.name: slice_mesh(p.to_trimesh(), settings, backend=slicer) for p in parts if not p.empty}
 
 
+def estimate_one_arm(mesh, slicer="builtin", settings=None):
+    """The whole model printed by one arm: the time of its G-code at the
+    programmed feeds (``gcode.summarize``), s -- what the split is measured
+    against."""
+    from ambots.gcode import parse_gcode_text, summarize
+    from ambots.slicer import slice_mesh
+    return summarize(parse_gcode_text(slice_mesh(mesh, settings, backend=slicer), "whole model"))["print_time_s"]
+
+
 def coordinate(sliced, parts, cell, mode="concurrent", **kw):
     """Step 4: per-arm programs with A-series coordination."""
     from ambots.coordinate import build_programs
@@ -93,6 +107,8 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
     job.parts = split(job.mesh, cell, arms, seam, settings)
     job.sliced = slice_parts(job.parts, slicer, settings)
     job.programs = coordinate(job.sliced, job.parts, cell, mode)
+    if len(arms) > 1:
+        job.one_arm_estimate_s = estimate_one_arm(job.mesh, slicer, settings)
     return job
 
 

@@ -1,22 +1,35 @@
-"""The full demo, as `make demo` runs it: real roscore, hub, one firmware per
-arm at speed max, the front end printing the demo block, and the capture.
-The print must finish with zero collisions, and the capture must show both
-arms' filament colours."""
+"""The full demo, run as the README says (`make demo`, into a temporary
+folder): real roscore, hub, one firmware per arm at speed max, the front end
+printing the demo block, and the capture.  The print must finish with zero
+collisions, the capture must show both arms' filament colours, and make must
+end with the summary and exit 0."""
 import json
 import os
 import subprocess
 
 import numpy as np
 
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def _tail(path, n=6000):
+    return path.read_text()[-n:] if path.exists() else ""
+
 
 def test_demo_prints_with_both_arms_concurrently_without_collision(tmp_path):
     env = dict(os.environ, ROS_HOME=str(tmp_path / "ros_home"))
     out = tmp_path / "demo"
-    log = tmp_path / "demo.log"
+    log = tmp_path / "make.log"
     with open(log, "w") as f:      # a file, not a pipe (see test_rostests.py)
-        r = subprocess.run(["roslaunch", "ambots", "demo.launch", "out:=%s" % out], stdout=f,
+        r = subprocess.run(["make", "-s", "demo", "DEMO_OUT=%s" % out], cwd=ROOT, stdout=f,
                            stderr=subprocess.STDOUT, text=True, timeout=900, env=env)
-    assert r.returncode == 0 and (out / "report.json").exists(), log.read_text()[-6000:]
+    text = log.read_text()
+    assert r.returncode == 0 and (out / "report.json").exists(), text[-3000:] + _tail(out / "launch.log")
+    # the summary: finished, makespan, speed-up against one arm alone, contacts, where the files are
+    summary = text[text.index("FINISHED"):]
+    for needle in ("makespan", "one arm alone", "speed-up", "contacts      0", "closest approach",
+                   str(out / "capture.png"), str(out / "report.json")):
+        assert needle in summary, (needle, summary)
     report = json.loads((out / "report.json").read_text())
     assert report["finished"] is True, report
     assert report["collisions"] == {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}

@@ -7,6 +7,18 @@ import rospy
 import rosnode
 
 
+def rviz_executable():
+    """RViz's own executable, found as roslaunch finds a node's (Debian:
+    /usr/lib/rviz/rviz; Noetic: /opt/ros/noetic/lib/rviz/rviz), with no shell
+    helper such as rosrun in between."""
+    from roslib.packages import find_node
+    for path in find_node("rviz", "rviz"):
+        if os.path.isfile(path) and os.access(path, os.X_OK):
+            return path
+    raise RuntimeError("rviz is not installed: `make setup` installs the Debian package rviz "
+                       "(on Noetic: ros-noetic-rviz)")
+
+
 class HeadlessRviz:
     """Starts Xvfb (a free display number) and RViz with ``config``; use as a
     context manager.  :meth:`grab` saves a PNG of RViz's 3D view."""
@@ -25,7 +37,7 @@ class HeadlessRviz:
         with os.fdopen(r) as f:
             self.display = ":" + f.readline().strip()
         env = dict(os.environ, DISPLAY=self.display)
-        self.rviz = subprocess.Popen(["rosrun", "rviz", "rviz", "-d", self.config,
+        self.rviz = subprocess.Popen([rviz_executable(), "-d", self.config,
                                       "__name:=" + self.node_name],
                                      env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         return self
