@@ -287,12 +287,23 @@ def box_clearance(A, B, radii, box_min, box_max, mask=None):
             raise ValueError("no capsule left to check (every link skipped)")
         A, B, radii = A[:, mask], B[:, mask], radii[mask]
     D = B - A
+    # Only capsules that may hold the row's minimum are searched: the box's
+    # signed distance is 1-Lipschitz, so a capsule's clearance is at least the
+    # value at its midpoint minus half its length, and at most the value at
+    # either end; a capsule whose lower bound exceeds the row's smallest upper
+    # bound cannot be the closest.
+    ends = np.minimum(_box_sdf(A, lo, hi), _box_sdf(B, lo, hi)) - radii         # (N, C)
+    lower = _box_sdf(A + D / 2, lo, hi) - np.linalg.norm(D, axis=-1) / 2 - radii
+    rows, caps = np.nonzero(lower < ends.min(axis=1, keepdims=True))
+    if lo.ndim == 3:
+        lo, hi = lo[rows, 0], hi[rows, 0]
+    A, D = A[rows, caps], D[rows, caps]
 
     def f(t):
         return _box_sdf(A + t[..., None] * D, lo, hi)
 
     g = (np.sqrt(5.0) - 1.0) / 2.0
-    left, right = np.zeros(A.shape[:2]), np.ones(A.shape[:2])
+    left, right = np.zeros(len(rows)), np.ones(len(rows))
     x1, x2 = right - g, left + g
     f1, f2 = f(x1), f(x2)
     for _ in range(_GOLDEN_ITERS):
@@ -303,8 +314,8 @@ def box_clearance(A, B, radii, box_min, box_max, mask=None):
         f_new = f(x_new)
         x1, f1, x2, f2 = (np.where(keep_left, x_new, x2), np.where(keep_left, f_new, f2),
                           np.where(keep_left, x1, x_new), np.where(keep_left, f1, f_new))
-    best = np.minimum(np.minimum(f1, f2), np.minimum(f(np.zeros_like(left)), f(np.ones_like(left))))
-    return (best - radii).min(axis=1)
+    ends[rows, caps] = np.minimum(ends[rows, caps], np.minimum(f1, f2) - radii[caps])
+    return ends.min(axis=1)
 
 
 def bed_clearance(body, Q, cell, skip=("base_link",)):

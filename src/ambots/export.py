@@ -35,8 +35,11 @@ block starts later than the previous one ended).  Then, per arm:
     limit); ``movej`` for the planner's joint-space moves (the first travel
     of a run of moves that does not start at the nozzle, park moves);
     ``set_tool_digital_out(0, True/False)`` switches the extruder around
-    extruding moves; ``sleep`` for the plan's waits (barriers, ``G4``), each
-    with a comment saying why.
+    extruding moves; ``sleep`` for the plan's ``G4`` dwells and idle time.
+    Only a job of one arm is exported this way: a URScript program runs open
+    loop on its controller and cannot wait at a barrier for another arm, so
+    a job of several arms is refused (drive those through ROS: the
+    trajectory format, or the firmware's ``driver:=trajectory``).
 
 Frames: the UR profile's ``base_link`` is the manufacturer's base frame (DH
 frame 0) and its ``flange`` the tool flange (DH frame 6), so the poses are
@@ -53,7 +56,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ambots.errors import ConfigError, ExportError
-from ambots.motion import Directive, MotionPlanner, Moves, Pause as Dwell
+from ambots.motion import Directive, MotionPlanner, Moves, Pause as Dwell, read_program
 from ambots.runner import ArmRunner
 from ambots.trajectory import finite_differences, joint_limits, retime
 
@@ -538,6 +541,10 @@ def urscript(record, digital_out=("tool", 0), tool_acceleration=1.2, plan_path=N
     arm, prof, planner = record.arm, record.arm.profile, record.planner
     if prof.brand != UR_BRAND:
         raise ExportError(_not_ur(arm))
+    if not record.program.start_first or any(isinstance(it, Directive) and isinstance(it.message, WaitFor)
+                                             for it in record.items):
+        raise ExportError("arm %s: its program waits for other arms; a URScript program cannot (export "
+                          "--format trajectory)" % record.name)
     kind, port = digital_out
     if kind not in ("tool", "standard") or not isinstance(port, int) or not 0 <= port <= 7:
         raise ExportError("extruder output %r: expected ('tool' or 'standard', 0..7)" % (digital_out,))
@@ -555,8 +562,7 @@ def urscript(record, digital_out=("tool", 0), tool_acceleration=1.2, plan_path=N
     s.comment("poses: the nozzle (TCP) in the robot's base frame, m, rotation vector rad; joints rad")
     s.comment("extruder: %s digital output %d (True = extrude); retractions are not emitted"
               % (kind, port))
-    s.comment("timing: start every arm's program of the job at the same moment; sleep() repeats the "
-              "waits of the plan (simulated), it does not synchronise the arms")
+    s.comment("timing: the plan's, for this arm printing alone (URScript cannot wait for another arm)")
     s.add('textmsg("ambots: %s starts")' % record.name)
     s.add("set_tcp(p[%s])" % _vec(tcp))
     s.extruder(False)
@@ -564,36 +570,22 @@ def urscript(record, digital_out=("tool", 0), tool_acceleration=1.2, plan_path=N
     items = record.items
     next_item = 0
     prev_end = 0.0
-    started = record.program.start_first
 
     def directives_until(stop):
-        """Comment the directives of items [next_item, stop); return the last wait among them."""
+        """Comment the directives of items [next_item, stop)."""
         nonlocal next_item
-        wait = None
         for i in range(next_item, stop):
-            it = items[i]
-            if isinstance(it, Directive):
-                s.comment("line %d: %s" % (it.line, _directive_text(it.message)))
-                if isinstance(it.message, WaitFor) and it.message.robot == arm.id:
-                    wait = it
+            if isinstance(items[i], Directive):
+                s.comment("line %d: %s" % (items[i].line, _directive_text(items[i].message)))
         next_item = max(next_item, stop)
-        return wait
 
     for eb in record.blocks:
-        wait = directives_until(eb.item) if eb.item >= 0 else None
+        if eb.item >= 0:
+            directives_until(eb.item)
         gap = eb.start_s - prev_end
         if gap > MIN_SLEEP_S:
-            if wait is not None:
-                w = wait.message
-                why = "line %d: barrier, wait until R%d reports %s (simulated wait)" % (
-                    wait.line, w.other, "line %d" % w.line if w.line is not None else "layer %d" % w.layer)
-            elif not started and eb.item >= 0:
-                why = "wait for the start (A1) from another arm (simulated wait)"
-            else:
-                why = "idle in the plan (simulated wait)"
-            s.sleep(gap, why)
+            s.sleep(gap, "idle in the plan")
         if eb.item >= 0:
-            started = True
             next_item = max(next_item, eb.item + 1)
         origin = eb.origin
         b = eb.block
@@ -666,6 +658,19 @@ def _not_ur(arm):
 
 
 # ------------------------------------------------------------- the command
+def _open_loop(path, plan):
+    """Why a job of several arms is not exported as URScript."""
+    from ambots.protocol import WaitFor
+    waits = sum(1 for prog in plan.programs.values() for it in read_program(prog.text)[0]
+                if isinstance(it, Directive) and isinstance(it.message, WaitFor))
+    return ("%s: a job of %d arms (%s, %d barriers) is not exported as URScript: a URScript program runs open "
+            "loop on its controller and cannot wait for another arm, so the arms would drift apart and could "
+            "collide.  Drive the arms through ROS instead (export --format trajectory, or the firmware's "
+            "driver:=trajectory, whose barriers go through the hub), or plan the job for one UR arm alone "
+            "(python -m ambots plan MODEL --arms NAME) and export that"
+            % (path, len(plan.programs), ", ".join(plan.programs), waits))
+
+
 def _parse_output(text):
     kind, _, port = str(text).partition(":")
     try:
@@ -714,6 +719,8 @@ def export_plan(path, fmt, arms=None, cell=None, out=None, timing="accel", force
         for n in names:
             if plan.programs[n].arm.profile.brand != UR_BRAND:
                 raise ExportError(_not_ur(plan.programs[n].arm))
+        if len(plan.programs) > 1:
+            raise ExportError(_open_loop(path, plan))
     warnings = _check_report(plan, force)
     result, records = record_plan(plan, retime=(timing == "accel"))
     warnings += _compare_report(plan, records, same_timing=(timing == "planned"))

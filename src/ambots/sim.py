@@ -8,9 +8,9 @@ Steps (``python -m ambots plan`` runs them in this order):
 1. :func:`simulate` -- load each arm's program (A5), start the arms the
    job says (A1) and advance all runners until every arm is done or one
    fails; A10/A11 of each arm reach the others, A1/A7 reach their target;
-2. :func:`check_motion` -- resample every arm's executed joint trajectory
-   on one time grid and measure arm-arm, arm-bed and arm-part clearance
-   with the capsule model (:mod:`ambots.collision`);
+2. :func:`check_motion` -- arm-arm, arm-bed and arm-part clearance of every
+   arm's executed joint trajectory, checked continuously
+   (:mod:`ambots.contact`) with the capsule model (:mod:`ambots.collision`);
 3. :func:`report` -- the report dictionary (see the README for its keys).
 """
 import time
@@ -141,79 +141,98 @@ def _resample(t, Q, grid):
     return out
 
 
-def check_motion(result, cell, step_s=0.1, home=None):
-    """Clearances of the executed motion.
-
-    Every arm's joints are sampled every ``step_s`` simulated seconds (and
-    held at the last/first pose outside its trace).  The printed part is the
-    box around every bead deposited so far (its top grows with time); an
-    arm's nozzle link stops 5 mm above the tip, so printing is not contact.
+def check_motion(result, cell):
+    """Clearances of the executed motion, checked continuously
+    (:mod:`ambots.contact`).  The printed part is the box around every bead
+    deposited so far (its top grows with time); an arm's nozzle body stops
+    short of the tip, so printing is not contact.
 
     Returns a dict: ``collisions`` {arm_arm, arm_bed, arm_part: samples in
     contact}, ``min_clearance_mm`` (closest approach of two arms),
-    ``min_bed_clearance_mm``, ``min_part_clearance_mm``, ``samples``."""
+    ``min_bed_clearance_mm``, ``min_part_clearance_mm`` (smallest sampled
+    clearances), ``bound_mm`` {arm_arm, arm_bed, arm_part: provable lower
+    bounds over the whole time line}, ``samples``, ``resolution_mm``."""
     runners = result.runners
     return check_traces({n: _trace(r) for n, r in runners.items()}, {n: r.arm for n, r in runners.items()},
-                        cell, beads=[b for r in runners.values() for b in r.beads], step_s=step_s)
+                        cell, beads=[b for r in runners.values() for b in r.beads])
 
 
-def check_traces(traces, arms, cell, beads=None, step_s=0.1):
+def _part_growth(beads, bed_z):
+    """The part printed so far as a box: its xy extent (2, 2) (every bead's,
+    conservatively), its top z at times t (the bed's top before the first
+    bead), and how much the top grows in intervals (t0, t1)."""
+    P = np.concatenate([np.concatenate([b.p0, b.p1]) for b in beads])
+    T = np.concatenate([np.concatenate([b.t, b.t]) for b in beads])
+    order = np.argsort(T, kind="stable")
+    Ts, ztop = T[order], np.maximum.accumulate(np.maximum(P[order, 2], bed_z))
+
+    def top(t):
+        i = np.searchsorted(Ts, t, side="right") - 1
+        return np.where(i >= 0, ztop[np.maximum(i, 0)], bed_z)
+
+    return np.array([P[:, :2].min(axis=0), P[:, :2].max(axis=0)]), top, lambda t0, t1: top(t1) - top(t0)
+
+
+def check_traces(traces, arms, cell, beads=None):
     """:func:`check_motion` for recorded traces: ``traces`` {name: (t (K,)
-    simulated s, Q (K, n) rad)}, ``arms`` {name: arm}, ``beads`` (with
-    times) for the arm-part check (None: not checked)."""
+    s, Q (K, n) rad)}, ``arms`` {name: arm}, ``beads`` (with times) for the
+    arm-part check (None: not checked)."""
     from ambots.collision import ArmBody, bed_clearance, clearance_between, part_clearance
+    from ambots.contact import RESOLUTION_M, Sweep, scan, sweep_radii
     names = list(traces)
     t_end = max(float(tr[0][-1]) for tr in traces.values())
-    grid = np.arange(0.0, t_end + step_s, step_s)
     bodies = {n: ArmBody.from_arm(arms[n]) for n in names}
-    Qs = {n: _resample(traces[n][0], traces[n][1], grid) for n in names}
-    out = {"collisions": {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}, "samples": int(len(grid)),
+    sweeps = {n: Sweep(*traces[n], sweep_radii(bodies[n])) for n in names}
+    contact = CONTACT_MM * MM
+    out = {"collisions": {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}, "samples": 0,
            "min_clearance_mm": None, "min_bed_clearance_mm": None, "min_part_clearance_mm": None,
-           "closest_pair": None, "closest_time_s": None}
-    # arm-arm
+           "bound_mm": {"arm_arm": None, "arm_bed": None, "arm_part": None},
+           "closest_pair": None, "closest_time_s": None, "resolution_mm": RESOLUTION_M / MM}
+
+    def record(kind, s):
+        out["collisions"][kind] += s.contacts
+        out["samples"] += s.samples
+        old = out["bound_mm"][kind]
+        out["bound_mm"][kind] = s.bound / MM if old is None else min(old, s.bound / MM)
+
     best = np.inf
     for i, a in enumerate(names):
         for b in names[i + 1:]:
-            c = clearance_between(bodies[a], Qs[a], bodies[b], Qs[b])
-            out["collisions"]["arm_arm"] += int(np.sum(c < CONTACT_MM * MM))
-            k = int(np.argmin(c))
-            if c[k] < best:
-                best = float(c[k])
-                out["closest_pair"], out["closest_time_s"] = [a, b], float(grid[k])
+            s = scan(lambda t: clearance_between(bodies[a], sweeps[a].at(t), bodies[b], sweeps[b].at(t)),
+                     lambda t0, t1: sweeps[a].swept(t0, t1) + sweeps[b].swept(t0, t1), t_end, contact)
+            record("arm_arm", s)
+            if s.min < best:
+                best = s.min
+                out["closest_pair"], out["closest_time_s"] = [a, b], s.t_min
     if len(names) > 1:
         out["min_clearance_mm"] = best / MM
-    # arm-bed
     bed_min = np.inf
     for n in names:
-        c = bed_clearance(bodies[n], Qs[n], cell)
-        out["collisions"]["arm_bed"] += int(np.sum(c < CONTACT_MM * MM))
-        bed_min = min(bed_min, float(c.min()))
+        s = scan(lambda t: bed_clearance(bodies[n], sweeps[n].at(t), cell), sweeps[n].swept, t_end, contact,
+                 track_min=False)
+        record("arm_bed", s)
+        bed_min = min(bed_min, s.min)
     out["min_bed_clearance_mm"] = bed_min / MM
-    # arm-part: the box of what was deposited by each sample time
     if beads:
-        P = np.concatenate([np.concatenate([b.p0, b.p1]) for b in beads])
-        T = np.concatenate([np.concatenate([b.t, b.t]) for b in beads])
-        order = np.argsort(T)
-        ztop = np.maximum.accumulate(P[order, 2])
-        idx = np.searchsorted(T[order], grid, side="right") - 1
-        lo_xy, hi_xy = P[:, :2].min(axis=0), P[:, :2].max(axis=0)
         bed_z = cell.bed.pose[2, 3]
+        xy, top, growth = _part_growth(beads, bed_z)
         part_min = np.inf
-        have = idx >= 0
+
+        def part(n, t):
+            lo = np.tile([xy[0, 0], xy[0, 1], bed_z], (len(t), 1))
+            hi = np.column_stack([np.full(len(t), xy[1, 0]), np.full(len(t), xy[1, 1]), top(t)])
+            return part_clearance(bodies[n], sweeps[n].at(t), lo, hi)
+
         for n in names:
-            if not have.any():
-                break
-            c = np.full(len(grid), np.inf)
-            zt = ztop[idx[have]]
-            for level in np.unique(np.round(zt, 4)):
-                sel = np.where(have)[0][np.round(zt, 4) == level]
-                lo = np.array([lo_xy[0], lo_xy[1], bed_z])
-                hi = np.array([hi_xy[0], hi_xy[1], level])
-                c[sel] = part_clearance(bodies[n], Qs[n][sel], lo, hi)
-            out["collisions"]["arm_part"] += int(np.sum(c < CONTACT_MM * MM))
-            part_min = min(part_min, float(c.min()))
-        out["min_part_clearance_mm"] = part_min / MM if np.isfinite(part_min) else None
+            s = scan(lambda t: part(n, t), sweeps[n].swept, t_end, contact, track_min=False, growth=growth)
+            record("arm_part", s)
+            part_min = min(part_min, s.min)
+        out["min_part_clearance_mm"] = part_min / MM
     return out
+
+
+def _rounded(d):
+    return None if d is None else {k: None if v is None else round(v, 2) for k, v in d.items()}
 
 
 def report(result, motion, job=None, model=None, cell=None, mode=None, slicer=None, wall_time_s=None):
@@ -246,6 +265,8 @@ def report(result, motion, job=None, model=None, cell=None, mode=None, slicer=No
         "min_part_clearance_mm": None if motion["min_part_clearance_mm"] is None
         else round(motion["min_part_clearance_mm"], 2),
         "closest_pair": motion.get("closest_pair"), "closest_time_s": motion.get("closest_time_s"),
+        "clearance_bound_mm": _rounded(motion.get("bound_mm")), "collision_checks": motion.get("samples"),
+        "check_resolution_mm": motion.get("resolution_mm"),
         "deposit_volume_mm3": round(deposit_mm3, 1),
         "model_volume_mm3": round(float(job.mesh.volume), 1) if job is not None and job.mesh is not None else None,
         "errors": [{"arm": e.robot, "line": e.line, "message": e.message} for e in result.errors],

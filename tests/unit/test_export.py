@@ -1,11 +1,12 @@
 """``python -m ambots export`` (ambots.export): a small two-arm plan written
-by hand (the UR10 waits at a barrier for the Kinova) is exported as a
-URScript program for the UR10 -- structurally valid, one movel per G-code
-move whose pose is the G-code target in the UR base frame and agrees with
-the published DH kinematics of the planned joints -- and as joint
+by hand (the UR10 waits at a barrier for the Kinova) is exported as joint
 trajectories that are the planner's waypoints, within the speed limits,
-re-timed (by default) within the acceleration limits.  Non-UR arms, missing
-folders and unknown formats are refused with typed errors."""
+re-timed (by default) within the acceleration limits; it is refused as
+URScript (open loop: a script cannot wait for the other arm).  The UR10's
+program planned alone is exported as URScript -- structurally valid, one
+movel per G-code move whose pose is the G-code target in the UR base frame
+and agrees with the published DH kinematics of the planned joints.  Non-UR
+arms, missing folders and unknown formats are refused with typed errors."""
 import csv
 import json
 import math
@@ -57,6 +58,8 @@ KINOVA = HEADER + [
     "G1 X-60 Y0 E1.5",                # 13
 ]
 BARRIER_LINE, DWELL_LINE = 9, 17
+#: the UR10's program printed alone: the barrier line is a plain comment (same line numbers, same motion)
+UR10_ALONE = UR10[:BARRIER_LINE - 1] + ["; no barrier: printed alone"] + UR10[BARRIER_LINE:]
 URSCRIPT_FUNCTIONS = {"movel", "movej", "movep", "movec", "set_tcp", "set_payload", "set_tool_digital_out",
                       "set_standard_digital_out", "sleep", "sync", "textmsg", "popup", "stopl", "stopj"}
 
@@ -85,10 +88,25 @@ def plan(tmp_path_factory, cell):
 
 
 @pytest.fixture(scope="module")
-def script(plan, tmp_path_factory):
+def solo(tmp_path_factory, cell):
+    """A plan folder of the UR10 alone (what `plan --arms ur10` writes)."""
+    path = tmp_path_factory.mktemp("solo")
+    programs = {"ur10": ArmProgram(cell.arm("ur10"), "concurrent", UR10_ALONE)}
+    result = simulate(programs, cell)
+    rep = report(result, check_motion(result, cell), cell=cell, mode="concurrent")
+    assert rep["finished"] and sum(rep["collisions"].values()) == 0
+    (path / "ur10.gcode").write_text(programs["ur10"].text)
+    (path / "job.json").write_text(json.dumps({"cell": cell.name, "mode": "concurrent",
+                                               "arms": {"ur10": {"id": cell.arm("ur10").id}}}))
+    (path / "report.json").write_text(json.dumps(rep))
+    return path
+
+
+@pytest.fixture(scope="module")
+def script(solo, tmp_path_factory):
     """The UR10's URScript, written by the command line."""
     out = tmp_path_factory.mktemp("urscript")
-    code = cli.main(["export", str(plan[0]), "--format", "urscript", "--arms", "ur10", "--out", str(out)])
+    code = cli.main(["export", str(solo), "--format", "urscript", "--out", str(out)])
     assert code == 0
     assert sorted(p.name for p in out.iterdir()) == ["ur10.script"]
     return (out / "ur10.script").read_text()
@@ -234,25 +252,34 @@ def test_every_movel_is_the_gcode_target_in_the_base_frame_and_the_fk_of_the_pla
     assert seen == [l for l in moving if l != 6]
 
 
-def test_joint_moves_barrier_and_dwell(script, cell):
+def test_joint_moves_and_dwell(script, cell):
     calls = parse_script(script)
     movej = [(numbers(args), comment) for name, args, comment in calls if name == "movej"]
-    ref = reference_joints(cell, "\n".join(UR10) + "\n")
+    ref = reference_joints(cell, "\n".join(UR10_ALONE) + "\n")
     home = cell.arm("ur10").profile.home
     assert len(movej) == 2
     np.testing.assert_allclose(movej[0][0][:6], home, atol=1e-6)
     np.testing.assert_allclose(movej[1][0][:6], ref[6], atol=1e-6)       # the travel of line 6, in joint space
     sleeps = [(numbers(args)[0], comment) for name, args, comment in calls if name == "sleep"]
-    barrier = [s for s, c in sleeps if "barrier" in c and "R1" in c and "line 13" in c]
-    assert len(barrier) == 1 and barrier[0] > 0.5
     assert [s for s, c in sleeps if "G4" in c] == [0.5]
-    assert "# line %d: ;@A9 R2 W1 N13" % BARRIER_LINE in script
+    assert not [c for s, c in sleeps if "barrier" in c]
     # the extruder is off while the arm waits
     names = [(n, a) for n, a, _ in calls]
     for i, (n, _) in enumerate(names):
         if n == "sleep":
             state = [a for m, a in names[:i] if m == "set_tool_digital_out"][-1]
             assert state.endswith("False")
+
+
+def test_urscript_refuses_a_job_of_several_arms_open_loop(plan, tmp_path, capsys):
+    """The two-arm plan: even the UR10 alone is refused (its script could not
+    wait at the barrier of line 9), naming why and what to do instead."""
+    with pytest.raises(ExportError, match=r"2 arms \(kinova, ur10, 1 barriers\).*open loop.*trajectory"):
+        export_plan(str(plan[0]), "urscript", arms="ur10", out=str(tmp_path))
+    assert cli.main(["export", str(plan[0]), "--format", "urscript", "--arms", "ur10", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "open loop" in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []                                 # nothing written
 
 
 def test_urscript_refuses_a_kinova_arm_naming_it(plan, capsys):

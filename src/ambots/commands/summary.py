@@ -36,6 +36,17 @@ def _duration(s):
     return "%d h %02d min" % (s // 3600, s % 3600 // 60) if s >= 3600 else "%d min %02d s" % (s // 60, s % 60)
 
 
+def _shown(path):
+    """A file name as a person wants to read it: relative to the current
+    folder when inside it (the demo model is reached through the catkin
+    workspace's link to the package)."""
+    if not path:
+        return path
+    real = os.path.realpath(path)
+    rel = os.path.relpath(real)
+    return real if rel.startswith("..") else rel
+
+
 def summary_lines(out_dir, capture=False):
     """(lines, ok) for the run in ``out_dir``."""
     rep = _load(os.path.join(out_dir, "report.json"))
@@ -53,7 +64,7 @@ def summary_lines(out_dir, capture=False):
     if finished and n_contacts:
         head = "FINISHED WITH CONTACTS"
     lines = ["%s: %s on cell %s, %d arm%s, %s mode" % (
-        head, rep.get("model"), rep.get("cell"), len(arms), "" if len(arms) == 1 else "s", rep.get("mode"))]
+        head, _shown(rep.get("model")), rep.get("cell"), len(arms), "" if len(arms) == 1 else "s", rep.get("mode"))]
     if not finished:
         states = ", ".join("%s %s" % (n, a.get("state")) for n, a in arms.items())
         lines.append("  arms: %s%s" % (states, "; " + str(rep.get("reason")) if rep.get("reason") else ""))

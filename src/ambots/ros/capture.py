@@ -305,9 +305,13 @@ class PrintRecorder:
             report["min_clearance_mm"] = _round(executed["min_clearance_mm"])
             report["min_bed_clearance_mm"] = _round(executed["min_bed_clearance_mm"])
             report["min_part_clearance_mm"] = _round(executed["min_part_clearance_mm"])
+            report["clearance_bound_mm"] = {k: _round(v) for k, v in executed["bound_mm"].items()}
+            report["check_resolution_mm"] = executed["resolution_mm"]
             report["trace_gaps"] = self.trace_gaps
-            report["note"] = ("contacts: the executed trajectories the firmware nodes published, sampled "
-                              "every 0.1 s of simulated time (trace_gaps: chunks not received, must be 0); "
+            report["note"] = ("contacts: the executed trajectories the firmware nodes published, checked "
+                              "continuously (ambots.contact: clearance_bound_mm holds over the whole time line; "
+                              "near a contact or the closest approach no point moves more than "
+                              "check_resolution_mm between samples); trace_gaps: chunks not received, must be 0; "
                               "live_*: the joint states as they arrived")
         else:
             report["note"] = "contacts: the joint states as they arrived (no firmware traces)"
