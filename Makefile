@@ -62,6 +62,8 @@ workspace: $(WS)/devel/.done
 $(WS)/devel/.done: package.xml CMakeLists.txt setup.py $(wildcard nodes/* tests/ros/*.test config/env-hooks/*) | apt venv
 	@# a workspace of the old layout inside the package (.ws/) would be searched by rosrun again
 	rm -rf $(ROOT)/.ws
+	@# workspaces of clones that are gone (their link to the package dangles)
+	@for d in $(dir $(WS))ws-*; do [ -e "$$d/src/ambots/package.xml" ] || rm -rf "$$d"; done
 	mkdir -p $(WS)/src && ln -sfn $(ROOT) $(WS)/src/ambots
 	cd $(WS) && catkin_make -DPYTHON_EXECUTABLE=/usr/bin/python3 -DCATKIN_ENABLE_TESTING=ON > build.log 2>&1 \
 	  || { tail -40 build.log; exit 1; }
