@@ -231,46 +231,26 @@ def check_traces(traces, arms, cell, beads=None):
     return out
 
 
-def _rounded(d):
-    return None if d is None else {k: None if v is None else round(v, 2) for k, v in d.items()}
-
-
 def report(result, motion, job=None, model=None, cell=None, mode=None, slicer=None, wall_time_s=None):
-    """The ``report.json`` dictionary of a finished (or failed) run."""
+    """The ``report.json`` dictionary of a finished (or failed) run
+    (:func:`ambots.report.build`, the builder the live capture uses too)."""
+    from dataclasses import asdict
+
     from ambots.motion import FILAMENT_AREA_MM2
+    from ambots.report import arm_entry, build
     arms = {}
     deposit_mm3 = 0.0
     for name, r in result.runners.items():
-        s = r.stats
         e = float(sum(b.e_mm.sum() for b in r.beads))
         deposit_mm3 += e * FILAMENT_AREA_MM2
-        arms[name] = {"id": r.id, "state": r.state.name, "moves": s.moves,
-                      "extrude_mm": round(s.extrude_m / MM, 3), "travel_mm": round(s.travel_m / MM, 3),
-                      "print_time_s": round(s.print_time_s, 3), "idle_time_s": round(s.idle_time_s, 3),
-                      "ik_failures": s.ik_failures, "max_path_error_mm": round(s.max_path_error_mm, 5),
-                      "filament_mm": round(e, 3), "beads": int(sum(len(b.e_mm) for b in r.beads)),
-                      "done_at_s": None if s.done_s is None else round(s.done_s, 3),
-                      "planned_blocks": dict(s.plans)}
-    out = {
-        "model": model if model is not None else (job.model_path if job else None),
-        "cell": cell.name if cell is not None else (job.cell.name if job else None),
-        "mode": mode if mode is not None else (job.mode if job else None),
-        "slicer": slicer if slicer is not None else (job.slicer if job else None),
-        "finished": result.finished, "reason": result.reason,
-        "arms": arms,
-        "makespan_s": round(result.makespan_s, 3),
-        "collisions": motion["collisions"],
-        "min_clearance_mm": None if motion["min_clearance_mm"] is None else round(motion["min_clearance_mm"], 2),
-        "min_bed_clearance_mm": round(motion["min_bed_clearance_mm"], 2),
-        "min_part_clearance_mm": None if motion["min_part_clearance_mm"] is None
-        else round(motion["min_part_clearance_mm"], 2),
-        "closest_pair": motion.get("closest_pair"), "closest_time_s": motion.get("closest_time_s"),
-        "clearance_bound_mm": _rounded(motion.get("bound_mm")), "collision_checks": motion.get("samples"),
-        "check_resolution_mm": motion.get("resolution_mm"),
-        "deposit_volume_mm3": round(deposit_mm3, 1),
-        "model_volume_mm3": round(float(job.mesh.volume), 1) if job is not None and job.mesh is not None else None,
-        "errors": [{"arm": e.robot, "line": e.line, "message": e.message} for e in result.errors],
-        "messages": result.messages,
-        "wall_time_s": round(result.wall_time_s if wall_time_s is None else wall_time_s, 3),
-    }
-    return out
+        arms[name] = arm_entry(r.id, r.state.name, asdict(r.stats), sum(len(b.e_mm) for b in r.beads), e)
+        del arms[name]["error"]
+    meta = {"model": model if model is not None else (job.model_path if job else None),
+            "cell": cell.name if cell is not None else (job.cell.name if job else None),
+            "mode": mode if mode is not None else (job.mode if job else None),
+            "slicer": slicer if slicer is not None else (job.slicer if job else None)}
+    model_mm3 = float(job.mesh.volume) if job is not None and job.mesh is not None else None
+    return build(meta, result.finished, arms, round(result.makespan_s, 3), motion, deposit_mm3, model_mm3,
+                 result.wall_time_s if wall_time_s is None else wall_time_s, reason=result.reason,
+                 errors=[{"arm": e.robot, "line": e.line, "message": e.message} for e in result.errors],
+                 messages=result.messages)

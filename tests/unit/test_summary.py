@@ -46,6 +46,13 @@ def test_contacts_fail_the_run(tmp_path):
     assert code == 1 and out.startswith("FINISHED WITH CONTACTS") and "arm-arm 3" in out
 
 
+def test_unchecked_motion_fails_the_run(tmp_path):
+    rep = _report()
+    rep["collisions"] = None
+    code, out = _run(tmp_path, rep)
+    assert code == 1 and "NOT CHECKED" in out
+
+
 def test_a_missing_capture_fails_a_live_run_only(tmp_path):
     code, out = _run(tmp_path, _report(), {}, False, "--capture")
     assert code == 1 and "picture       MISSING" in out

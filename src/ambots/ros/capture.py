@@ -270,61 +270,36 @@ class PrintRecorder:
         colours = {a.name: a.profile.colour for a in self.cell.arms}
         if len(dep):
             dep.export(os.path.join(out_dir, "deposit.ply"), colours=colours, scale=1000.0)
+        from ambots.report import arm_entry, build, makespan_s
+        executed = self.check_executed()
         with self._lock:
             arms = {}
             for a in self.cell.arms:
                 s = self.stats.get(a.name, {})
                 p = self.progress.get(a.name, {})
-                arms[a.name] = {
-                    "id": a.id, "state": s.get("state", p.get("state")),
-                    "moves": s.get("moves"), "extrude_mm": _mm(s.get("extrude_m")),
-                    "travel_mm": _mm(s.get("travel_m")), "print_time_s": s.get("print_time_s"),
-                    "idle_time_s": s.get("idle_time_s"), "ik_failures": s.get("ik_failures"),
-                    "max_path_error_mm": s.get("max_path_error_mm"),
-                    "beads": len(dep.segments(a.name).starts) if a.name in dep.arms else 0,
-                    "error": p.get("error")}
+                arms[a.name] = arm_entry(a.id, s.get("state", p.get("state")), s,
+                                         len(dep.segments(a.name).starts) if a.name in dep.arms else 0,
+                                         error=p.get("error"))
             live = {"arm_arm": int(self.contacts), "arm_bed": int(self.bed_contacts),
                     "arm_part": int(self.part_contacts)}
             live_min = round(self.min_clearance * 1000.0, 2) if self.checks else None
-            starts = [s.get("first_motion_s") for s in self.stats.values() if s.get("first_motion_s") is not None]
-            ends = [s.get("done_s") for s in self.stats.values() if s.get("done_s") is not None]
-            report = {
-                "model": model, "cell": self.cell.name, "mode": mode, "slicer": slicer,
-                "finished": self.done()[0], "arms": arms,
-                "makespan_s": round(max(ends) - min(starts), 3) if starts and ends else None,
-                "collisions": live, "collision_checks": self.checks, "min_clearance_mm": live_min,
-                "deposit_volume_mm3": round(dep.volume_mm3(), 1) if len(dep) else 0.0,
-                "model_volume_mm3": model_volume_mm3,
-                "deposit_mesh": "deposit.ply",
-                "wall_time_s": round(time.time() - self.started, 3),
-            }
-        executed = self.check_executed()
-        if executed is not None:
-            report["collisions"] = executed["collisions"]
-            report["collision_checks"] = executed["samples"]
-            report["min_clearance_mm"] = _round(executed["min_clearance_mm"])
-            report["min_bed_clearance_mm"] = _round(executed["min_bed_clearance_mm"])
-            report["min_part_clearance_mm"] = _round(executed["min_part_clearance_mm"])
-            report["clearance_bound_mm"] = {k: _round(v) for k, v in executed["bound_mm"].items()}
-            report["check_resolution_mm"] = executed["resolution_mm"]
-            report["trace_gaps"] = self.trace_gaps
-            report["note"] = ("contacts: the executed trajectories the firmware nodes published, checked "
-                              "continuously (ambots.contact: clearance_bound_mm holds over the whole time line; "
-                              "near a contact or the closest approach no point moves more than "
-                              "check_resolution_mm between samples); trace_gaps: chunks not received, must be 0; "
-                              "live_*: the joint states as they arrived")
-        else:
-            report["note"] = "contacts: the joint states as they arrived (no firmware traces)"
-        report["live_collisions"], report["live_min_clearance_mm"] = live, live_min
+            extra = {"live_collisions": live, "live_min_clearance_mm": live_min,
+                     "live_collision_checks": self.checks, "trace_gaps": self.trace_gaps}
+            if executed is None:
+                extra["note"] = "no firmware traces were received: contacts were not checked"
+            else:
+                extra["note"] = ("contacts: the executed trajectories the firmware nodes published, checked "
+                                 "continuously (ambots.contact: clearance_bound_mm holds over the whole time "
+                                 "line; near a contact or the closest approach no point moves more than "
+                                 "check_resolution_mm between samples); trace_gaps: chunks not received, must "
+                                 "be 0; live_*: the joint states as they arrived")
+            report = build({"model": model, "cell": self.cell.name, "mode": mode, "slicer": slicer},
+                           self.done()[0], arms, makespan_s(self.stats), executed,
+                           dep.volume_mm3() if len(dep) else 0.0, model_volume_mm3,
+                           time.time() - self.started, deposit_mesh="deposit.ply", **extra)
         import json
         with open(os.path.join(out_dir, "report.json"), "w") as f:
             json.dump(report, f, indent=2)
         return report
 
 
-def _round(v):
-    return None if v is None else round(float(v), 2)
-
-
-def _mm(v):
-    return None if v is None else round(float(v) * 1000.0, 3)
