@@ -18,7 +18,7 @@ APT_PACKAGES := ros-core catkin python3-rospy python3-roslaunch python3-rostest 
   python3-std-msgs python3-geometry-msgs python3-sensor-msgs python3-trajectory-msgs \
   python3-visualization-msgs python3-pykdl python3-numpy python3-yaml \
   python3-catkin-pkg librostest-dev python3-venv python3-dev ros-robot-state-publisher rviz xvfb \
-  python3-rosgraph python3-roslib python3-rospkg prusa-slicer cmake g++ make rosbash
+  python3-rosgraph python3-rosgraph-msgs python3-roslib python3-rospkg prusa-slicer cmake g++ make rosbash
 # everything a command needs: the workspace (ROS_PACKAGE_PATH, PYTHONPATH) and
 # the venv first on PATH (done by the package's catkin env hook)
 ROSENV := source $(WS)/devel/setup.bash &&

@@ -97,8 +97,8 @@ class Scan:
 
 
 def scan(clearance, swept, t_end, contact=0.0, track_min=True, growth=None, resolution=RESOLUTION_M,
-         step=COARSE_STEP_S, max_rounds=64):
-    """Clearance over [0, ``t_end``], continuously.
+         step=COARSE_STEP_S, max_rounds=64, t_start=0.0):
+    """Clearance over [``t_start``, ``t_end``], continuously.
 
     clearance(times (N,)) -> (N,) m; swept(t0, t1) -> (N,) m, the bound on
     how far the bodies move together in each interval; growth(t0, t1) -> (N,)
@@ -106,7 +106,7 @@ def scan(clearance, swept, t_end, contact=0.0, track_min=True, growth=None, reso
     Intervals are halved while their bound is below ``contact`` (or, with
     ``track_min``, below the smallest clearance sampled so far) and the
     bodies sweep more than ``resolution`` in them."""
-    t = np.unique(np.append(np.arange(0.0, t_end, step), t_end))
+    t = np.unique(np.append(t_start + np.arange(0.0, max(0.0, t_end - t_start), step), max(t_start, t_end)))
     c = clearance(t)
     samples, contacts = len(t), int(np.sum(c < contact))
     k = int(np.argmin(c))

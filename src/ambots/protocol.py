@@ -66,7 +66,7 @@ when the network reorders them (an A1 can never overtake its A5).
 
 Ranges: robot ids (R except in A8, W) are 1..2**31-1; node ids (S, and R in
 A8) are 0..2**31-1 where 0 (:data:`HUB`) is the hub; Q, B, C, K 0..2**32-1;
-L, N 0..2**31-1; X Y Z |v| <= 1e6 mm; P 0..100; M 0..1e9 s.
+L, N 0..2**31-1; X Y Z |v| <= 1e6 mm; P 0..100; M 0..1e10 s (ROS time: a simulated clock from 0, or Unix time).
 """
 import json
 import re
@@ -158,7 +158,7 @@ _U32 = _Int(0, MAX_U32, "an integer 0..%d" % MAX_U32)
 _COUNT = _Int(0, MAX_ID, "an integer 0..%d" % MAX_ID)
 _MM = _Num(-MAX_ABS_MM, MAX_ABS_MM, "a coordinate within +-%g mm" % MAX_ABS_MM)
 _PERCENT = _Num(0.0, 100.0, "a percentage 0..100")
-_CLOCK = _Num(0.0, 1e9, "a time 0..1e9 s")
+_CLOCK = _Num(0.0, 1e10, "a time 0..1e10 s")       # ROS time: simulated from 0, or the wall (Unix time)
 _STATE = _State(0, max(ArmState), "an arm state 0..%d" % max(ArmState))
 _HEADER = (("S", "sender", _NODE), ("Q", "seq", _U32), ("B", "after", _U32))
 

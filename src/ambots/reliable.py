@@ -97,6 +97,15 @@ class Sender:
         """The unacknowledged messages, oldest first."""
         return tuple(self._pending.values())
 
+    @property
+    def last_seq(self):
+        """The number of the last message numbered (None: none yet)."""
+        return seq_after(self._next_seq, -1) if self._last_to else None
+
+    def last_to(self, destination):
+        """The number of the last message sent to ``destination`` (None: none)."""
+        return self._last_to.get(destination)
+
     def send(self, message, destination, now):
         """Number ``message`` (S = this node, Q = the next number), keep it
         until node ``destination`` acknowledges it, and return the
@@ -248,6 +257,11 @@ class Receiver:
                 break
             out.append((nxt, self.receive(nxt, sender)))
         return out
+
+    def top(self, sender):
+        """The highest number admitted from ``sender`` (None: nothing yet)."""
+        w = self._windows.get(sender)
+        return None if w is None else w.top
 
     def _seen(self, sender, seq):
         """Whether (sender, seq) was admitted, or is too old to tell (then

@@ -70,6 +70,11 @@ class Bead:
         return np.where(L > 0, self.e_mm * FILAMENT_AREA_MM2 * MM ** 3 / np.maximum(L, 1e-12), 0.0)
 
 
+#: a clock within this of a waypoint's time has reached it (s); the one clock
+#: (ambots.clock) steps to block ends in whole nanoseconds
+TIME_TOLERANCE_S = 1e-6
+
+
 @dataclass
 class RunStats:
     moves: int = 0                 #: G-code moves executed
@@ -545,7 +550,7 @@ class ArmRunner:
         (or the arm stopped), True when the block finished."""
         b = self.block
         K = len(b.t)
-        t_rel = now - self.block_t0
+        t_rel = now - self.block_t0 + TIME_TOLERANCE_S     # a clock step to an event lands on it
         kk = int(np.searchsorted(b.t, t_rel, side="right")) - 1
         kk = min(max(kk, self.k), K - 1)
         stop = None
@@ -571,6 +576,18 @@ class ArmRunner:
             return self.state is ArmState.PRINTING
         self.clock = now
         return False
+
+    def next_event(self):
+        """When this arm next reports or reaches a barrier by itself (s): the
+        end of the block it executes, or where a requested pause stops it;
+        None when it is not printing (it waits, pauses, is idle or done)."""
+        if self.state is not ArmState.PRINTING:
+            return None
+        b = self.block
+        if b is None:
+            return self.clock
+        j = self._pause_point(b) if self.pause_requested else len(b.t) - 1
+        return self.block_t0 + float(b.t[j])
 
     def _pause_point(self, b):
         """The waypoint where a pause requested now stops the block ``b``:

@@ -180,6 +180,7 @@ def check_traces(traces, arms, cell, beads=None):
     from ambots.collision import ArmBody, bed_clearance, clearance_between, part_clearance
     from ambots.contact import RESOLUTION_M, Sweep, scan, sweep_radii
     names = list(traces)
+    t_start = min(float(tr[0][0]) for tr in traces.values())     # a wall clock starts far from 0
     t_end = max(float(tr[0][-1]) for tr in traces.values())
     bodies = {n: ArmBody.from_arm(arms[n]) for n in names}
     sweeps = {n: Sweep(*traces[n], sweep_radii(bodies[n])) for n in names}
@@ -199,7 +200,8 @@ def check_traces(traces, arms, cell, beads=None):
     for i, a in enumerate(names):
         for b in names[i + 1:]:
             s = scan(lambda t: clearance_between(bodies[a], sweeps[a].at(t), bodies[b], sweeps[b].at(t)),
-                     lambda t0, t1: sweeps[a].swept(t0, t1) + sweeps[b].swept(t0, t1), t_end, contact)
+                     lambda t0, t1: sweeps[a].swept(t0, t1) + sweeps[b].swept(t0, t1), t_end, contact,
+                     t_start=t_start)
             record("arm_arm", s)
             if s.min < best:
                 best = s.min
@@ -209,7 +211,7 @@ def check_traces(traces, arms, cell, beads=None):
     bed_min = np.inf
     for n in names:
         s = scan(lambda t: bed_clearance(bodies[n], sweeps[n].at(t), cell), sweeps[n].swept, t_end, contact,
-                 track_min=False)
+                 track_min=False, t_start=t_start)
         record("arm_bed", s)
         bed_min = min(bed_min, s.min)
     out["min_bed_clearance_mm"] = bed_min / MM
@@ -224,7 +226,8 @@ def check_traces(traces, arms, cell, beads=None):
             return part_clearance(bodies[n], sweeps[n].at(t), lo, hi)
 
         for n in names:
-            s = scan(lambda t: part(n, t), sweeps[n].swept, t_end, contact, track_min=False, growth=growth)
+            s = scan(lambda t: part(n, t), sweeps[n].swept, t_end, contact, track_min=False, growth=growth,
+                     t_start=t_start)
             record("arm_part", s)
             part_min = min(part_min, s.min)
         out["min_part_clearance_mm"] = part_min / MM

@@ -35,3 +35,8 @@ def arm_node(arm_name):
 
 def joint_states_topic(arm_name):
     return "/%s/joint_states" % arm_name
+
+#: the one clock's bookkeeping (std_msgs/String, JSON): each firmware after a
+#: step ({"arm": name, ...}: ambots.clock.ArmReady) and the hub after each
+#: message ({"hub": ...}: ambots.clock.HubState); the clock node reads it
+CLOCK_READY_TOPIC = "/ambots/clock/ready"

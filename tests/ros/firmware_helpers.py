@@ -4,6 +4,7 @@ so the node must run as /front_end), recorders of the firmware's topics, and
 G-code for small test programs."""
 import json
 import threading
+import time
 
 import numpy as np
 import rosgraph
@@ -21,14 +22,14 @@ TIMEOUT = 20.0       # s; generous for a loaded 2-core machine
 
 def wait_until(condition, what, timeout=TIMEOUT, period=0.02):
     """Poll ``condition`` until it returns something true; fail naming ``what``."""
-    deadline = rospy.get_time() + timeout
+    deadline = time.monotonic() + timeout      # wall time: a simulated clock may run fast or stand still
     while not rospy.is_shutdown():
         result = condition()
         if result:
             return result
-        if rospy.get_time() > deadline:
+        if time.monotonic() > deadline:
             break
-        rospy.sleep(period)
+        time.sleep(period)
     raise AssertionError("timed out after %.0f s waiting for %s" % (timeout, what))
 
 

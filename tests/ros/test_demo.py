@@ -9,6 +9,9 @@ import subprocess
 
 import numpy as np
 
+from ambots.commands.plan import plan_job
+from ambots.config import default_cell_path, load_cell
+
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
@@ -33,6 +36,13 @@ def test_demo_prints_with_both_arms_concurrently_without_collision(tmp_path):
     report = json.loads((out / "report.json").read_text())
     assert report["finished"] is True, report
     assert report["collisions"] == {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}
+    # live = checked: the joint states as they arrived, paired by the instant of the one clock
+    assert report["live_collisions"] == {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}, report
+    assert report["live_collision_checks"] > 100 and report["live_min_clearance_mm"] > 0
+    # the same motion as the offline run of the same job (python -m ambots plan)
+    offline = plan_job(os.path.join(ROOT, "config", "models", "demo_block.stl"), load_cell(default_cell_path()))
+    assert abs(report["makespan_s"] - offline["makespan_s"]) <= 0.01 * offline["makespan_s"], \
+        (report["makespan_s"], offline["makespan_s"])
     assert report["collision_checks"] > 100 and report["min_clearance_mm"] > 0
     for name, arm in report["arms"].items():
         assert arm["state"] == "DONE" and arm["beads"] > 1000 and arm["ik_failures"] == 0, name

@@ -13,3 +13,25 @@ def state_dir(value):
     d = d or os.path.join(rospkg.get_ros_home(), "ambots", "state")
     os.makedirs(d, exist_ok=True)
     return d
+
+
+class WallTimer:
+    """Calls ``callback()`` every ``period`` wall seconds in a daemon thread
+    until ROS shuts down or :meth:`shutdown`.  For retransmissions and other
+    work that must go on while a simulated clock (``/clock``) stands still,
+    which ``rospy.Timer`` would wait for."""
+
+    def __init__(self, period, callback):
+        import threading
+        self._stop = threading.Event()
+        self._period, self._callback = float(period), callback
+        self._thread = threading.Thread(target=self._run, name="wall-timer", daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        import rospy
+        while not self._stop.wait(self._period) and not rospy.is_shutdown():
+            self._callback()
+
+    def shutdown(self):
+        self._stop.set()

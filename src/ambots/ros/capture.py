@@ -81,12 +81,13 @@ class HeadlessRviz:
 
 class PrintRecorder:
     """Watches a live print: the deposit markers (for the bead mesh), every
-    arm's joint states (arm-arm clearance with the capsule model, at most
-    ``check_hz``), the firmware stats and the hub's progress.  :meth:`done`
+    arm's joint states (arm-arm clearance with the capsule model, for pairs
+    of states stamped with the same instant of the one clock), the firmware
+    stats and the hub's progress.  :meth:`done`
     says when every arm of the job is DONE (or one is in ERROR);
     :meth:`write` writes the deposit mesh and ``report.json``."""
 
-    def __init__(self, cell, check_hz=50.0):
+    def __init__(self, cell):
         import json
         import threading
         from sensor_msgs.msg import JointState
@@ -109,8 +110,7 @@ class PrintRecorder:
         self.bed_contacts = self.part_contacts = 0
         self.part_lo = self.part_hi = None       #: box around every bead seen so far (m)
         self.checks = 0
-        self._last_check = 0.0
-        self._period = 1.0 / check_hz
+        self._states = {}          #: arm -> {stamp ns: joints}, the latest states as they arrived
         self.started = time.time()
         self.traces = {}          #: arm -> [(K, 1 + n) rows of (simulated t, joints)] as executed
         self.bead_times = {}      #: arm -> [(K, 7) rows of (p0, p1, simulated t)]
@@ -196,6 +196,9 @@ class PrintRecorder:
             self.stats[name] = flat
 
     def _on_joints(self, msg, arm):
+        """The joint states as they arrive, checked in the one clock: each arm
+        against the bed and the part, and two arms whenever both have published
+        a state stamped with the same instant (never poses of two moments)."""
         import numpy as np
         from ambots.collision import bed_clearance, clearance_between, part_clearance
         names = [arm.prefix + j for j in arm.profile.joint_names]
@@ -203,26 +206,26 @@ class PrintRecorder:
             q = np.array([msg.position[list(msg.name).index(n)] for n in names])
         except ValueError:
             return
+        stamp = msg.header.stamp.to_nsec()
         with self._lock:
             self.q[arm.name] = q
-            now = time.time()
-            if now - self._last_check < self._period or len(self.q) < 2:
-                return
-            self._last_check = now
-            for n, q in self.q.items():
-                self.bed_contacts += float(bed_clearance(self.bodies[n], q[None], self.cell)[0]) < 0.0
-                if self.part_lo is not None:
-                    lo = np.array([self.part_lo[0], self.part_lo[1], self.cell.bed.pose[2, 3]])
-                    self.part_contacts += float(part_clearance(self.bodies[n], q[None], lo,
-                                                               self.part_hi)[0]) < 0.0
-            arms = list(self.q)
-            for i, a in enumerate(arms):
-                for b in arms[i + 1:]:
-                    c = float(clearance_between(self.bodies[a], self.q[a][None], self.bodies[b],
-                                                self.q[b][None])[0])
-                    self.checks += 1
-                    self.min_clearance = min(self.min_clearance, c)
-                    self.contacts += c < 0.0
+            seen = self._states.setdefault(arm.name, {})
+            seen[stamp] = q
+            if len(seen) > 400:
+                del seen[min(seen)]
+            self.bed_contacts += float(bed_clearance(self.bodies[arm.name], q[None], self.cell)[0]) < 0.0
+            if self.part_lo is not None:
+                lo = np.array([self.part_lo[0], self.part_lo[1], self.cell.bed.pose[2, 3]])
+                self.part_contacts += float(part_clearance(self.bodies[arm.name], q[None], lo,
+                                                           self.part_hi)[0]) < 0.0
+            for other, states in self._states.items():
+                if other == arm.name or stamp not in states:
+                    continue
+                c = float(clearance_between(self.bodies[arm.name], q[None], self.bodies[other],
+                                            states[stamp][None])[0])
+                self.checks += 1
+                self.min_clearance = min(self.min_clearance, c)
+                self.contacts += c < 0.0
 
     def done(self, arms=None):
         """(finished, failed): every arm of ``arms`` (default: the cell's) is

@@ -15,14 +15,18 @@ hub, publishing joint states, the deposit and run statistics.
   every ``report_period`` s when the line, layer or percentage changed.
 * The clock: one loop thread owns the runner (every access holds
   ``self.lock``; the subscriber callbacks only queue commands, so an ack is
-  never held up behind a long planning step).  ``speed`` N: every tick the
-  simulated time advances by N x the wall time elapsed, ticks at ``rate``
-  Hz.  ``speed`` None (``max``): while printing, each iteration advances
-  the runner by ``max_step`` simulated seconds and yields (a short sleep, so
-  the other threads run); otherwise (idle, paused, waiting, done, error)
-  the simulated time follows the wall clock at the tick rate.
-* ``topics.joint_states_topic(arm)``: sensor_msgs/JointState at ``rate``
-  Hz (wall), names ``<arm>/<joint>``, positions ``runner.joints(now)``;
+  never held up behind a long planning step).  The runner runs on ROS time,
+  the one clock of the cell: in simulation ``/clock`` (``use_sim_time``;
+  ``nodes/clock``, :mod:`ambots.clock`), with a real arm the wall.  Each
+  iteration executes the commands that arrived at the current instant and
+  advances the runner to it; in simulation the node then tells the clock
+  (``topics.CLOCK_READY_TOPIC``) where it stands: its instant, its next
+  event (the end of the block it executes), its messages in flight and the
+  hub's messages it executed, so that the clock moves on only when every
+  arm has done its step and every message is delivered.
+* ``topics.joint_states_topic(arm)``: sensor_msgs/JointState at every
+  new instant of the simulated clock, stamped with it (with the wall clock,
+  at ``rate`` Hz), names ``<arm>/<joint>``, positions ``runner.joints(now)``;
   robot_state_publisher of the cell turns them into TF (start cell.launch
   with ``publish_home:=false``).
 * :data:`ambots.rviz.DEPOSIT_TOPIC`: visualization_msgs/MarkerArray of
@@ -35,9 +39,10 @@ hub, publishing joint states, the deposit and run statistics.
   with the state, line, layer, percent, the runner's :class:`RunStats` and
   what the arm knows of the others, whenever its state or another arm's
   state changes.
-* Travel and joint moves are planned around obstacles: the bed and the
-  other arms of the cell at their latest joint states (subscribed), with
-  ``clearance_mm`` of margin (:mod:`ambots.collision`).
+* Travel and joint moves are planned around obstacles: the bed, and with a
+  real arm (``driver`` trajectory) the other arms of the cell at their
+  latest joint states (subscribed), with ``clearance_mm`` of margin
+  (:mod:`ambots.collision`).
 * ``driver``: ``"sim"`` (the above: the arm is simulated, joint states are
   the runner's) or ``"trajectory"`` (real time only): the motion also goes
   to the arm's joint trajectory controller as JointTrajectory chunks, the
@@ -54,12 +59,14 @@ from dataclasses import asdict
 import numpy as np
 import rospy
 from geometry_msgs.msg import Point
+from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ambots import topics
 from ambots.checkpoint import StateStore
+from ambots.clock import ArmReady
 from ambots.collision import ArmBody, bed_clearance, clearance_between
 from ambots.errors import ProtocolError
 from ambots.motion import MotionPlanner
@@ -195,20 +202,20 @@ class FirmwareNode:
     Parameters
     ----------
     arm, cell : the arm (:class:`~ambots.config.ArmInstance`) and its cell
-    speed : simulated seconds per wall second, or None for as fast as possible
-    rate : ticks (and joint states) per wall second
-    max_step : simulated seconds per iteration at ``speed`` None
-    driver : ``"sim"`` or ``"trajectory"`` (:mod:`ambots.ros.driver`; needs ``speed`` 1)
+    rate : ticks per wall second (joint states with a wall clock)
+    driver : ``"sim"`` or ``"trajectory"`` (:mod:`ambots.ros.driver`; a real arm: the wall clock)
     chunk_duration, command_delay : s of motion per JointTrajectory; s the
         controller executes after the firmware's clock (``trajectory``)
     """
 
-    def __init__(self, arm, cell, speed=1.0, rate=50.0, max_step=2.0, report_period=1.0,
+    def __init__(self, arm, cell, rate=50.0, report_period=1.0,
                  marker_rate=4.0, bead_width_mm=0.45, clearance_mm=5.0, max_beads=2000,
                  retry_period=0.05, max_tries=None, state_dir=None, run_id="", slowdown=1.0,
                  driver="sim", chunk_duration=0.5, command_delay=0.3):
         self.arm, self.cell = arm, cell
-        self.speed, self.rate, self.max_step = speed, float(rate), float(max_step)
+        self.rate = float(rate)
+        #: the one clock is simulated (/clock, use_sim_time) rather than the wall
+        self.sim_clock = bool(rospy.get_param("/use_sim_time", False))
         self.report_period, self.marker_period = report_period, 1.0 / marker_rate
         self.retry_period = retry_period
         self.collision = CollisionCheck(arm, cell, clearance_mm * MM)
@@ -223,6 +230,7 @@ class FirmwareNode:
         self.markers = DepositMarkers(arm.name, cell.world_frame, arm.profile.colour, bead_width_mm * MM,
                                       max_beads)
         self.sim_now = 0.0
+        self._clock_now = 0.0                 #: the latest instant received on /clock
         self.slowdown = float(slowdown)       # > 1: this arm's motion takes that much longer (fault tests)
         if self.slowdown != 1.0:
             self.runner.planner.time_scale = self.slowdown
@@ -239,9 +247,9 @@ class FirmwareNode:
         if driver not in DRIVERS:
             raise ValueError("driver must be one of %s, got %r" % (", ".join(DRIVERS), driver))
         if driver == "trajectory":
-            if speed != 1.0:
-                raise ValueError("driver trajectory drives a real arm in real time: speed must be 1, got %s"
-                                 % ("max" if speed is None else speed))
+            if self.sim_clock:
+                raise ValueError("driver trajectory drives a real arm: its clock is the wall, not a "
+                                 "simulated /clock (use_sim_time must be false)")
             self.driver = TrajectoryDriver(arm, self.runner.planner, chunk_duration, command_delay)
         self._chunks = []
 
@@ -259,11 +267,15 @@ class FirmwareNode:
         self._trace = rospy.Publisher("~trace", Float64MultiArray, queue_size=100000)
         self._bead_times = rospy.Publisher("~beads", Float64MultiArray, queue_size=100000)
         self._row_seq = {"trace": 0, "beads": 0}
+        self._clock_ready = rospy.Publisher(topics.CLOCK_READY_TOPIC, String, queue_size=1000)
+        self._ready = None
+        if self.sim_clock:                    # wake up at each step of the one clock
+            rospy.Subscriber("/clock", Clock, self._on_clock, queue_size=1)
         self._js = JointState(name=[arm.prefix + j for j in arm.profile.joint_names])
-        # plan around the other arms' current poses only when the clocks follow the wall: at
-        # speed max each arm's clock runs ahead on its own, so another arm's latest joint state
-        # is not where it is at this arm's moment (the barriers keep the arms apart)
-        for other in self.cell.arms if self.speed is not None else ():
+        # a real arm (driver trajectory) plans around the other arms' current poses; a
+        # simulated one, like the offline run, around the bed only (the barriers keep the
+        # arms apart, and the same plan runs offline and live)
+        for other in self.cell.arms if self.driver is not None else ():
             if other.name != arm.name:
                 rospy.Subscriber(topics.joint_states_topic(other.name), JointState,
                                  self._on_other_joints, callback_args=other, queue_size=1)
@@ -280,6 +292,11 @@ class FirmwareNode:
     def join(self):
         if self._thread is not None:
             self._thread.join()
+
+    def _on_clock(self, msg):
+        # the instant itself: rospy's own clock may not have taken it yet
+        self._clock_now = max(self._clock_now, msg.clock.to_sec())
+        self._wake.set()
 
     def _on_other_joints(self, msg, other):
         try:
@@ -354,6 +371,9 @@ class FirmwareNode:
         """One iteration (lock held): commands, the clock, what to publish."""
         r = self.runner
         self._peers_changed = False
+        # the one clock: ROS time (/clock in simulation, the wall with a real arm);
+        # commands that arrived are executed at this instant
+        self.sim_now = max(self.sim_now, rospy.get_time(), self._clock_now)
         acks = []
         while True:
             try:
@@ -364,17 +384,7 @@ class FirmwareNode:
             q = self.driver.rest_joints(r, rospy.get_time())    # where the controller says the arm rests
             if q is not None:
                 r.q = q
-        release = r.release_time()
-        if self.speed is None and (r.state is ArmState.PRINTING or release is not None):
-            # as fast as possible: the arm's clock runs ahead of the wall; a
-            # barrier releases it at the other arm's clock when it reported
-            r.advance(max(self.sim_now, r.clock, release or 0.0) + self.max_step)
-            self.sim_now = max(self.sim_now, r.clock)
-        elif self.speed is None and r.state is ArmState.WAITING:
-            pass                              # its clock stays where the wait began
-        else:
-            self.sim_now += (self.speed or 1.0) * dt
-            r.advance(self.sim_now)
+        r.advance(self.sim_now)
         if self.driver is not None:
             self._chunks = self.driver.update(self.sim_now)
             self._chunks_at = (self.sim_now, rospy.get_time())
@@ -401,6 +411,7 @@ class FirmwareNode:
         last = time.monotonic()
         next_joints = next_markers = next_retry = next_report = next_checkpoint = last
         last_state, last_status = None, None
+        js_time = None
         while not rospy.is_shutdown():
             wall = time.monotonic()
             self._wake.clear()                # before the queue is drained: no command is missed
@@ -437,60 +448,83 @@ class FirmwareNode:
                 rospy.signal_shutdown("firmware loop failed: %s" % exc)
                 raise
             last = wall
-            if self._chunks:
-                self.driver.publish(self._chunks, *self._chunks_at)
-                self._chunks = []
-                if self.driver.min_lead is not None and self.driver.min_lead < 0 and not self._late:
-                    self._late = True
-                    rospy.logwarn("%s firmware: a trajectory chunk was sent %.3f s after its start: raise "
-                                  "~command_delay", self.arm.name, -self.driver.min_lead)
-            for a in acks:
-                self._to_hub.publish(String(encode(a)))
-            for o in numbered:
-                self._to_hub.publish(String(encode(o.message)))
-            for key, pub, rows in zip(("trace", "beads"), (self._trace, self._bead_times), self._traced):
-                if rows is not None:          # numbered (data_offset): a subscriber can tell a gap
-                    self._row_seq[key] += 1
-                    pub.publish(_rows(rows, self._row_seq[key]))
-            if wall >= next_retry:
-                next_retry = wall + self.retry_period
-                with self._io:
-                    due = self.sender.due(wall)
-                for o in due:
+            try:
+                if self._chunks:
+                    self.driver.publish(self._chunks, *self._chunks_at)
+                    self._chunks = []
+                    if self.driver.min_lead is not None and self.driver.min_lead < 0 and not self._late:
+                        self._late = True
+                        rospy.logwarn("%s firmware: a trajectory chunk was sent %.3f s after its start: raise "
+                                      "~command_delay", self.arm.name, -self.driver.min_lead)
+                for a in acks:
+                    self._to_hub.publish(String(encode(a)))
+                for o in numbered:
                     self._to_hub.publish(String(encode(o.message)))
-            if wall >= next_joints:
-                next_joints = max(next_joints + period, wall)
-                self._js.header.stamp = rospy.Time.now()
-                if self.driver is not None:          # the controller's joints, else what it was told
-                    measured = self.driver.measured()
-                    if measured is None:
-                        measured = self.driver.commanded(self._js.header.stamp.to_sec())
-                    if measured is not None:
-                        q = measured
-                self._js.position = [float(v) for v in q]
-                self._joints.publish(self._js)
-            if markers is not None:
-                next_markers = wall + self.marker_period
-                self._deposit.publish(markers)
-            if stats is not None:
-                self._stats.publish(String(stats))
-                if state is not last_state:      # barriers come and go: not worth a line each
-                    log = rospy.logdebug if {state, last_state} == _BARRIER else rospy.loginfo
-                    log("%s firmware: %s", self.arm.name, state.name)
-                last_state = state
-            if self.speed is None and state is ArmState.PRINTING:
-                time.sleep(0.0005)            # let the callbacks run
-            else:
-                # spare time until the next tick: plan the next moves ahead (one
-                # item at a time), then sleep until the tick or a command (a
-                # barrier's report) arrives
-                tick_end = wall + period
-                while not self._wake.is_set() and time.monotonic() < tick_end - 0.002:
-                    with self.lock:
-                        if not self.runner.prefetch():
-                            break
-                    time.sleep(0)             # let the callbacks run
-                self._wake.wait(max(0.0, tick_end - time.monotonic()))
+                for key, pub, rows in zip(("trace", "beads"), (self._trace, self._bead_times), self._traced):
+                    if rows is not None:          # numbered (data_offset): a subscriber can tell a gap
+                        self._row_seq[key] += 1
+                        pub.publish(_rows(rows, self._row_seq[key]))
+                if wall >= next_retry:
+                    next_retry = wall + self.retry_period
+                    with self._io:
+                        due = self.sender.due(wall)
+                    for o in due:
+                        self._to_hub.publish(String(encode(o.message)))
+                # joint states at every new instant of the one clock, stamped with it (with
+                # the wall as the clock, at most at the tick rate)
+                if self.sim_now != js_time and (self.sim_clock or wall >= next_joints):
+                    next_joints = max(next_joints + period, wall)
+                    js_time = self.sim_now
+                    self._js.header.stamp = rospy.Time.from_sec(js_time)
+                    if self.driver is not None:          # the controller's joints, else what it was told
+                        measured = self.driver.measured()
+                        if measured is None:
+                            measured = self.driver.commanded(self._js.header.stamp.to_sec())
+                        if measured is not None:
+                            q = measured
+                    self._js.position = [float(v) for v in q]
+                    self._joints.publish(self._js)
+                if markers is not None:
+                    next_markers = wall + self.marker_period
+                    self._deposit.publish(markers)
+                if stats is not None:
+                    self._stats.publish(String(stats))
+                    if state is not last_state:      # barriers come and go: not worth a line each
+                        log = rospy.logdebug if {state, last_state} == _BARRIER else rospy.loginfo
+                        log("%s firmware: %s", self.arm.name, state.name)
+                    last_state = state
+                self._publish_ready()
+            except rospy.ROSException:
+                if rospy.is_shutdown():        # a topic closed under us: the node is going down
+                    break
+                raise
+            # spare time until the next tick: plan the next moves ahead (one
+            # item at a time), then sleep until the tick, a command (a
+            # barrier's report) or the clock's next step arrives
+            tick_end = wall + period
+            while not self._wake.is_set() and time.monotonic() < tick_end - 0.002:
+                with self.lock:
+                    if not self.runner.prefetch():
+                        break
+                time.sleep(0)             # let the callbacks run
+            self._wake.wait(max(0.0, tick_end - time.monotonic()))
+
+    def _publish_ready(self):
+        """Tell the clock (:mod:`ambots.clock`) where this arm is: its step, its
+        next event, its messages in flight, what it executed of the hub's."""
+        if not self.sim_clock:
+            return
+        with self.lock:
+            r = self.runner
+            ready = ArmReady(self.sim_now, r.next_event(), r.state is ArmState.PRINTING, 0, None, None)
+        with self._io:
+            ready = ArmReady(ready.t, ready.next_event, ready.active, len(self.sender.pending),
+                             self.sender.last_seq, self.receiver.top(HUB))
+        if ready != self._ready:
+            self._ready = ready
+            doc = ready.as_dict()
+            doc["arm"] = self.arm.name
+            self._clock_ready.publish(String(json.dumps(doc)))
 
     def _number(self, messages):
         out = []
@@ -549,7 +583,7 @@ class FirmwareNode:
         return json.dumps({
             "arm": self.arm.name, "id": self.arm.id, "state": r.state.name, "layer": int(r.layer),
             "line": int(r.done_line), "percent": round(float(r.percent), 2), "sim_time": round(r.clock, 6),
-            "speed": "max" if self.speed is None else self.speed, "beads": self.markers.n_beads,
+            "clock": "sim" if self.sim_clock else "wall", "beads": self.markers.n_beads,
             "stats": asdict(r.stats),
             "peers": {self._names.get(i, str(i)): s for i, s in sorted(self.peers.items())},
             "driver": self.driver.stats() if self.driver is not None else {"driver": "sim"},

@@ -5,11 +5,14 @@ on ``topics.FRONT_END_TOPIC`` (the hub's acks of our messages, and the arms'
 A10/A11 it forwards, which the link acknowledges with ``A8 R0 Q<q> S1000``
 back to the hub), a subscriber on the hub's progress (``--follow``), and a
 timer for retransmissions."""
+import time
+
 import rospy
 from std_msgs.msg import String
 
 from ambots import topics
 from ambots.frontend import ReliableLink
+from ambots.ros import WallTimer
 
 
 class RosLink(ReliableLink):
@@ -24,7 +27,7 @@ class RosLink(ReliableLink):
         self._sub = rospy.Subscriber(topics.FRONT_END_TOPIC, String, self._on_message, queue_size=1000)
         self._progress_sub = rospy.Subscriber(topics.PROGRESS_TOPIC, String,
                                               lambda msg: self.receive_progress(msg.data), queue_size=1)
-        self._timer = rospy.Timer(rospy.Duration(retry_period), self._on_timer)
+        self._timer = WallTimer(retry_period, self.tick)      # wall time: a simulated clock may stand still
 
     def _publish(self, text):
         self._pub.publish(String(text))
@@ -32,17 +35,14 @@ class RosLink(ReliableLink):
     def _on_message(self, msg):
         self.receive_text(msg.data)
 
-    def _on_timer(self, _event):
-        self.tick()
-
     def wait_for_hub(self, timeout):
         """Wait up to ``timeout`` s until the hub is connected both ways;
         False if it is not (messages are retried anyway)."""
-        deadline = rospy.get_time() + timeout
-        while not rospy.is_shutdown() and rospy.get_time() < deadline:
+        deadline = time.monotonic() + timeout
+        while not rospy.is_shutdown() and time.monotonic() < deadline:
             if self._pub.get_num_connections() > 0 and self._sub.get_num_connections() > 0:
                 return True
-            rospy.sleep(0.02)
+            time.sleep(0.02)
         return False
 
     def close(self):

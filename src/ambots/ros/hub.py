@@ -18,13 +18,20 @@ after ``kill -9``) restores it: what the old hub acknowledged is forwarded,
 once, under the numbers the old hub gave it."""
 import json
 import threading
+import time
 
 import rospy
 from std_msgs.msg import String
 
 from ambots import topics
 from ambots.checkpoint import read_json, write_json
+from ambots.clock import HubState
 from ambots.faults import FaultSpec, FaultyChannel
+from ambots.ros import WallTimer
+
+#: the hub keeps time by the wall: retries, fault delays and progress go on
+#: while a simulated clock (/clock) waits for the messages to arrive
+_now = time.monotonic
 
 
 class HubNode:
@@ -53,7 +60,7 @@ class HubNode:
         if self.state_file:
             doc = read_json(self.state_file)
             if doc is not None and doc.get("run_id") == self.run_id:
-                self.hub.restore(doc["hub"], rospy.get_time())
+                self.hub.restore(doc["hub"], _now())
                 self.resumed = True
                 rospy.logwarn("communication hub: resumed from its checkpoint (%d forwards to deliver)",
                               len(self.hub.sender.pending))
@@ -63,23 +70,25 @@ class HubNode:
         self._pubs[topics.PROGRESS_TOPIC] = rospy.Publisher(topics.PROGRESS_TOPIC, String,
                                                             queue_size=1, latch=True)
         rospy.Subscriber(topics.HUB_TOPIC, String, self._on_message, queue_size=1000)
-        rospy.Timer(rospy.Duration(self.retry_period), self._on_retry_timer)
-        rospy.Timer(rospy.Duration(self.progress_period), self._on_progress_timer)
+        self._clock_ready = rospy.Publisher(topics.CLOCK_READY_TOPIC, String, queue_size=1000)
+        self._state = None
+        WallTimer(self.retry_period, self._on_retry_timer)
+        WallTimer(self.progress_period, self._on_progress_timer)
         if self.faults:
             rospy.logwarn("communication hub: injecting faults %s", self.faults)
-            rospy.Timer(rospy.Duration(0.002), self._on_fault_timer)
+            WallTimer(0.002, self._on_fault_timer)
 
     def _on_message(self, msg):
         caller = msg._connection_header["callerid"]
         with self._lock:
             if self.faults:
-                self._in.push((msg.data, caller), rospy.get_time())
+                self._in.push((msg.data, caller), _now())
                 return
-            self._publish(self.hub.handle(msg.data, caller, rospy.get_time()))
+            self._publish(self.hub.handle(msg.data, caller, _now()))
 
-    def _on_fault_timer(self, _event):
+    def _on_fault_timer(self):
         with self._lock:
-            now = rospy.get_time()
+            now = _now()
             posts = []
             for text, caller in self._in.pop_due(now):
                 posts += self.hub.handle(text, caller, now)
@@ -87,19 +96,19 @@ class HubNode:
             for post in self._out.pop_due(now):
                 self._pubs[post.topic].publish(String(post.text))
 
-    def _on_retry_timer(self, _event):
+    def _on_retry_timer(self):
         with self._lock:
-            posts = self.hub.tick(rospy.get_time())
+            posts = self.hub.tick(_now())
             self.retries += sum(1 for p in posts if p.topic != topics.ERROR_TOPIC)
             self._publish(posts, save=False)     # retransmissions: nothing new to save
 
-    def _on_progress_timer(self, _event):
+    def _on_progress_timer(self):
         with self._lock:
             self._pubs[topics.PROGRESS_TOPIC].publish(String(self.progress_json()))
 
     def progress_json(self):
         """The hub's progress JSON plus its delivery counts (lock held)."""
-        doc = json.loads(self.hub.progress_json(rospy.get_time()))
+        doc = json.loads(self.hub.progress_json(_now()))
         doc["hub"] = {"retries": self.retries, "resumed": self.resumed}
         if self.faults:
             doc["faults"] = {"spec": str(self.faults), "in": self._in.counts.as_dict(),
@@ -109,12 +118,26 @@ class HubNode:
     def _save(self):
         write_json(self.state_file, {"run_id": self.run_id, "hub": self.hub.snapshot()})
 
+    def _tell_clock(self):
+        """What the clock (:mod:`ambots.clock`) needs to know that every message
+        is delivered: per sender the highest number admitted, per arm the last
+        forward, how many forwards are unacknowledged (lock held; sent when it
+        changed, before the posts that follow from it)."""
+        hub = self.hub
+        state = HubState({i: hub.receiver.top(i) for i in hub.registry.nodes if hub.receiver.top(i) is not None},
+                         {i: hub.sender.last_to(i) for i in hub.registry.arms if hub.sender.last_to(i) is not None},
+                         len(hub.sender.pending))
+        if state != self._state:
+            self._state = state
+            self._clock_ready.publish(String(json.dumps({"hub": state.as_dict()})))
+
     def _publish(self, posts, save=True):
         """Publish ``posts`` (lock held); with a state file, the state that
         produced them is saved first."""
+        self._tell_clock()
         if save and self.state_file and any(p.topic in self._inboxes for p in posts):
             self._save()
-        now = rospy.get_time()
+        now = _now()
         for post in posts:
             if post.topic == topics.ERROR_TOPIC:
                 rospy.logwarn(post.text)

@@ -1,0 +1,37 @@
+"""One clock, live = checked: a model of our own (a 110 x 30 x 3 mm plate,
+made here) printed live at speed:=4 (`make print`, real roscore, clock, hub,
+firmware, front end, capture) has no contact in the joint states as they
+arrived (paired by the instant of the one clock) nor in the executed
+motion, and the same makespan as the offline run (`python -m ambots plan`)
+of the same job within 1 %.  The demo at speed:=max is checked the same way
+in test_demo.py."""
+import json
+import os
+import subprocess
+
+import trimesh
+
+from ambots.commands.plan import plan_job
+from ambots.config import default_cell_path, load_cell
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def test_own_plate_at_speed_4_live_equals_checked_and_plan(tmp_path):
+    model = tmp_path / "plate_110x30x3.stl"
+    trimesh.creation.box((110.0, 30.0, 3.0)).export(model)
+    out = tmp_path / "print"
+    env = dict(os.environ, ROS_HOME=str(tmp_path / "ros_home"))
+    with open(tmp_path / "make.log", "w") as f:
+        r = subprocess.run(["make", "-s", "print", "MODEL=%s" % model, "OUT=%s" % out, "SPEED=4"], cwd=ROOT,
+                           stdout=f, stderr=subprocess.STDOUT, timeout=1500, env=env)
+    log = (tmp_path / "make.log").read_text()
+    assert r.returncode == 0, log[-3000:]
+    live = json.loads((out / "report.json").read_text())
+    assert live["finished"] and live["collisions"] == {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}, live
+    assert live["live_collisions"] == {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}, live
+    assert live["live_collision_checks"] > 50 and live["live_min_clearance_mm"] > 0
+    offline = plan_job(str(model), load_cell(default_cell_path()))
+    assert offline["finished"] and sum(offline["collisions"].values()) == 0
+    assert abs(live["makespan_s"] - offline["makespan_s"]) <= 0.01 * offline["makespan_s"], \
+        (live["makespan_s"], offline["makespan_s"])
