@@ -1,4 +1,4 @@
-"""One clock, live = checked: a model of our own (a 110 x 30 x 3 mm plate,
+"""One clock, live = checked: a model of our own (an 80 x 25 x 2 mm plate,
 made here) printed live at speed:=4 (`make print`, real roscore, clock, hub,
 firmware, front end, capture) has no contact in the joint states as they
 arrived (paired by the instant of the one clock) nor in the executed
@@ -18,8 +18,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 
 
 def test_own_plate_at_speed_4_live_equals_checked_and_plan(tmp_path):
-    model = tmp_path / "plate_110x30x3.stl"
-    trimesh.creation.box((110.0, 30.0, 3.0)).export(model)
+    model = tmp_path / "plate_80x25x2.stl"
+    trimesh.creation.box((80.0, 25.0, 2.0)).export(model)
     out = tmp_path / "print"
     env = dict(os.environ, ROS_HOME=str(tmp_path / "ros_home"))
     with open(tmp_path / "make.log", "w") as f:

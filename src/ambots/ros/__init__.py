@@ -31,7 +31,12 @@ class WallTimer:
     def _run(self):
         import rospy
         while not self._stop.wait(self._period) and not rospy.is_shutdown():
-            self._callback()
+            try:
+                self._callback()
+            except rospy.ROSException:
+                if rospy.is_shutdown():          # a topic closed under us: going down
+                    return
+                raise
 
     def shutdown(self):
         self._stop.set()

@@ -52,7 +52,12 @@ class ClockNode:
                 t = self.lockstep.next(wall)
                 late = self.lockstep.waiting_for() if wall >= next_log else None
             if t is not None:
-                self._publish(t)
+                try:
+                    self._publish(t)
+                except rospy.ROSException:
+                    if rospy.is_shutdown():      # the topic closed under us: going down
+                        return
+                    raise
             if late is not None:
                 next_log = wall + self.log_period
                 if late:
