@@ -88,7 +88,7 @@ class Lockstep:
     ``min_wall_step``: wall s between two steps the pace sets (paced or idle;
     an event or ``max_step`` at speed max goes at once)."""
 
-    def __init__(self, arms, speed=None, max_step=10.0, idle_speed=1.0, hub=True, min_wall_step=0.02):
+    def __init__(self, arms, speed=None, max_step=30.0, idle_speed=1.0, hub=True, min_wall_step=0.02):
         if speed is not None and not speed > 0:
             raise ValueError("speed must be > 0 or None (max), got %r" % (speed,))
         if not max_step > 0:

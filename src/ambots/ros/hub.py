@@ -121,12 +121,14 @@ class HubNode:
     def _tell_clock(self):
         """What the clock (:mod:`ambots.clock`) needs to know that every message
         is delivered: per sender the highest number admitted, per arm the last
-        forward, how many forwards are unacknowledged (lock held; sent when it
-        changed, before the posts that follow from it)."""
+        forward, how many forwards to arms are unacknowledged (what the front
+        end is told does not move an arm; lock held; sent when it changed,
+        before the posts that follow from it)."""
         hub = self.hub
+        arms = hub.registry.arms
         state = HubState({i: hub.receiver.top(i) for i in hub.registry.nodes if hub.receiver.top(i) is not None},
-                         {i: hub.sender.last_to(i) for i in hub.registry.arms if hub.sender.last_to(i) is not None},
-                         len(hub.sender.pending))
+                         {i: hub.sender.last_to(i) for i in arms if hub.sender.last_to(i) is not None},
+                         sum(1 for o in hub.sender.pending if o.destination in arms))
         if state != self._state:
             self._state = state
             self._clock_ready.publish(String(json.dumps({"hub": state.as_dict()})))
