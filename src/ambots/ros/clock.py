@@ -25,7 +25,9 @@ class ClockNode:
         self._news = threading.Event()
 
     def start(self):
-        self._pub = rospy.Publisher("/clock", Clock, queue_size=10)
+        # latched: a node that starts (or is respawned) late gets the instant at once, even
+        # while the clock waits for it and publishes nothing new
+        self._pub = rospy.Publisher("/clock", Clock, queue_size=10, latch=True)
         rospy.Subscriber(topics.CLOCK_READY_TOPIC, String, self._on_ready, queue_size=1000)
 
     def _on_ready(self, msg):
