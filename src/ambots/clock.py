@@ -137,6 +137,7 @@ class Lockstep:
         if self._wall is None:
             self._wall = wall
         if self.waiting_for():
+            self._wall = wall          # time spent waiting for the arms does not count towards the pace
             return None
         elapsed = max(0.0, wall - self._wall)
         paced = elapsed >= self.min_wall_step        # a paced step: not more often than this

@@ -75,6 +75,15 @@ def test_speed_paces_the_clock_against_the_wall():
     assert c.next(10.75) == pytest.approx(3.0)
 
 
+def test_time_spent_waiting_for_an_arm_does_not_count_towards_the_pace():
+    c = Lockstep(ARMS, speed=10.0, max_step=100.0)
+    settled(c, 0.0, nxt=50.0)
+    c.arm_ready("ur10", ready(-1.0, nxt=50.0))           # ur10 late: the clock waits 5 s of wall
+    assert c.next(0.0) is None and c.next(5.0) is None
+    c.arm_ready("ur10", ready(0.0, nxt=50.0))
+    assert c.next(5.1) == pytest.approx(1.0)              # 10 x 0.1 s, not 10 x 5.1 s
+
+
 def test_idle_follows_the_wall_and_max_is_as_fast_as_the_arms():
     c = Lockstep(ARMS, speed=None, max_step=2.0)
     settled(c, 0.0, active=False)

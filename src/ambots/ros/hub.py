@@ -70,8 +70,11 @@ class HubNode:
         self._pubs[topics.PROGRESS_TOPIC] = rospy.Publisher(topics.PROGRESS_TOPIC, String,
                                                             queue_size=1, latch=True)
         rospy.Subscriber(topics.HUB_TOPIC, String, self._on_message, queue_size=1000)
-        self._clock_ready = rospy.Publisher(topics.CLOCK_READY_TOPIC, String, queue_size=1000)
+        # latched: the clock learns the hub's state as soon as it connects
+        self._clock_ready = rospy.Publisher(topics.CLOCK_READY_TOPIC, String, queue_size=1000, latch=True)
         self._state = None
+        with self._lock:
+            self._tell_clock()
         WallTimer(self.retry_period, self._on_retry_timer)
         WallTimer(self.progress_period, self._on_progress_timer)
         if self.faults:
