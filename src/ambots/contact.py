@@ -1,8 +1,9 @@
 """Continuous contact check of executed motion: arm-arm, arm-bed and
 arm-part clearance over the whole time line, not only at sample times.
 
-An executed trajectory is a list of knots (t, q), linear in joint space
-between them (as the firmware records it, and as the traces are replayed).
+An executed trajectory is a list of knots (t, q, v): the cubic Hermite
+motion through them that the one timing law (:mod:`ambots.trajectory`)
+commands, or -- without speeds -- linear in joint space between them.
 Two facts make the check continuous:
 
 * **Sweep bound.**  A point of the arm's body moves, per unit of joint j's
@@ -63,19 +64,36 @@ def sweep_radii(body):
 
 
 class Sweep:
-    """One arm's executed motion: knots ``t`` (K,) s, ``Q`` (K, n) rad, linear
-    between knots and held before the first and after the last; ``radii``
-    from :func:`sweep_radii`."""
+    """One arm's executed motion: knots ``t`` (K,) s, ``Q`` (K, n) rad and,
+    if given, joint speeds ``V`` (K, n) rad/s at the knots (cubic Hermite
+    between knots, the commanded motion of :class:`ambots.trajectory.Spline`),
+    else linear between knots; held before the first knot and after the
+    last.  Knots at the same time keep the last one.  ``radii`` from
+    :func:`sweep_radii`."""
 
-    def __init__(self, t, Q, radii):
-        self.t = np.asarray(t, dtype=float)
-        self.Q = np.asarray(Q, dtype=float)
-        steps = np.abs(np.diff(self.Q, axis=0)) @ np.asarray(radii, dtype=float)
-        self.S = np.concatenate([[0.0], np.cumsum(steps)])        #: cumulative sweep bound, m
+    def __init__(self, t, Q, radii, V=None):
+        t = np.asarray(t, dtype=float)
+        Q = np.asarray(Q, dtype=float)
+        keep = np.ones(len(t), dtype=bool)
+        keep[:-1] = np.diff(t) > 0
+        self.t, self.Q = t[keep], Q[keep]
+        self.V = None if V is None else np.asarray(V, dtype=float)[keep]
+        radii = np.asarray(radii, dtype=float)
+        if self.V is None or len(self.t) < 2:
+            path = np.abs(np.diff(self.Q, axis=0))
+        else:
+            from ambots.trajectory import segment_bounds
+            T = np.diff(self.t)
+            path = segment_bounds(T, np.diff(self.Q, axis=0), self.V)[0] * T[:, None]
+        self.S = np.concatenate([[0.0], np.cumsum(path @ radii)])        #: cumulative sweep bound, m
 
     def at(self, times):
         """Joint vectors (N, n) at ``times`` (N,)."""
-        return np.stack([np.interp(times, self.t, self.Q[:, j]) for j in range(self.Q.shape[1])], axis=1)
+        times = np.atleast_1d(np.asarray(times, dtype=float))
+        if self.V is None or len(self.t) < 2:
+            return np.stack([np.interp(times, self.t, self.Q[:, j]) for j in range(self.Q.shape[1])], axis=1)
+        from ambots.trajectory import hermite
+        return hermite(self.t, self.Q, self.V, times)
 
     def swept(self, t0, t1):
         """Bound (N,) on how far any point moves between ``t0`` and ``t1`` (N,), m."""

@@ -58,10 +58,10 @@ import numpy as np
 from ambots.errors import ConfigError, ExportError
 from ambots.motion import Directive, MotionPlanner, Moves, Pause as Dwell, read_program
 from ambots.runner import ArmRunner
-from ambots.trajectory import finite_differences, joint_limits, retime
+from ambots.trajectory import finite_differences, joint_limits
 
 __all__ = ["FORMATS", "TIMINGS", "UR_BRAND", "PlanFolder", "ExecutedBlock", "ArmRecord", "Trajectory",
-           "load_plan", "record_plan", "retime", "trajectory", "check_limits", "urscript", "export_plan",
+           "load_plan", "record_plan", "trajectory", "check_limits", "urscript", "export_plan",
            "rotation_vector"]
 
 #: what ``--format`` accepts
@@ -165,16 +165,10 @@ def _read_json(path):
 class _Planner(MotionPlanner):
     """The firmware's planner; tags every block of :meth:`plan_moves` with
     ``lead``: how many of its first waypoints are a joint-space move (0: the
-    block is all Cartesian; ``len(block.t)``: all joint-space) and
-    ``t_planned`` (the planner's times); with ``retime`` the block's times
-    are then :func:`retime`'d for the joint accelerations
-    (``acceleration`` x ``velocity_scaling``, as the planner's joint moves)."""
+    block is all Cartesian; ``len(block.t)``: all joint-space).  Blocks are
+    timed by the planner's one timing law, as in ``plan`` and the firmware."""
 
     _lead = None
-
-    def __init__(self, arm, cell, retime=False, **kw):
-        super().__init__(arm, cell, **kw)
-        self.retime = retime
 
     def _joint_move_to(self, *args, **kw):
         block = super()._joint_move_to(*args, **kw)
@@ -186,9 +180,6 @@ class _Planner(MotionPlanner):
         block = super().plan_moves(segments, q0)
         lead = self._lead
         block.lead = 0 if lead is None else (len(block.t) if lead is block else len(lead.t))
-        block.t_planned = block.t
-        if self.retime and len(block.t) > 1:
-            block.t = retime(block.t, block.Q, self.amax)
         return block
 
 
@@ -263,14 +254,12 @@ class ArmRecord:
     done_s: Optional[float] = None
 
 
-def record_plan(plan, retime=False, dt=2.0):
-    """Execute the plan's programs again, recording (with ``retime``: every
-    run of G-code moves re-timed by :func:`retime`, the barriers waiting
-    accordingly).  Returns ``(SimResult, {arm name: ArmRecord})``; a run
-    that does not finish raises :class:`~ambots.errors.ExportError`."""
+def record_plan(plan, dt=2.0):
+    """Execute the plan's programs again, recording.  Returns ``(SimResult,
+    {arm name: ArmRecord})``; a run that does not finish raises
+    :class:`~ambots.errors.ExportError`."""
     from ambots.sim import simulate
-    result = simulate(plan.programs, plan.cell, dt=dt, planner_kw={"retime": bool(retime)}, planner_cls=_Planner,
-                      runner_cls=_Recorder)
+    result = simulate(plan.programs, plan.cell, dt=dt, planner_cls=_Planner, runner_cls=_Recorder)
     if not result.finished:
         errors = "; ".join("R%d line %d: %s" % (e.robot, e.line, e.message) for e in result.errors[:3])
         raise ExportError("%s: the plan does not run to the end (%s%s); nothing exported"
@@ -287,7 +276,12 @@ def record_plan(plan, retime=False, dt=2.0):
 class Trajectory:
     """Timed joint waypoints of one arm.  Row k: ``t`` (s), ``Q`` (n,) rad in
     the profile's joint order (= the driver's ``joint_names``); ``extrude``,
-    ``e_mm``, ``line``: the motion from row k-1 to row k (row 0: none)."""
+    ``e_mm``, ``line``: the motion from row k-1 to row k (row 0: none);
+    ``V`` (n,) rad/s the joint speeds at row k: between rows the motion is
+    the cubic Hermite through the rows' positions and speeds (the one
+    timing law's commanded motion; a controller interpolating positions and
+    velocities with cubic splines, as ros_control's joint trajectory
+    controller does, follows it exactly)."""
     arm: object
     joint_names: tuple
     t: np.ndarray
@@ -295,6 +289,7 @@ class Trajectory:
     extrude: np.ndarray
     e_mm: np.ndarray
     line: np.ndarray
+    V: np.ndarray = None
 
     @property
     def duration(self):
@@ -308,6 +303,7 @@ def trajectory(record):
     summed), so that times are strictly increasing."""
     t, Q, ex, e, line = [np.zeros(1)], [np.asarray(record.q_start, float)[None]], [np.zeros(1, bool)], \
         [np.zeros(1)], [np.zeros(1, int)]
+    V = [np.zeros((1, len(record.q_start)))]
     last_t, last_q = 0.0, np.asarray(record.q_start, float)
     for eb in record.blocks:
         b = eb.block
@@ -319,14 +315,16 @@ def trajectory(record):
                 ex.append(np.zeros(1, bool))
                 e.append(np.zeros(1))
                 line.append(np.array([int(b.line[k0])]))
+                V.append(np.zeros((1, len(last_q))))
             sl = slice(k0 + 1, k1 + 1)
             t.append(ts[1:])
             Q.append(b.Q[sl])
+            V.append(b.motion.eval(b.t[sl])[1] if b.motion is not None else np.zeros_like(b.Q[sl]))
             ex.append(np.asarray(b.extrude[sl], bool))
             e.append(np.asarray(b.e_mm[sl], float))
             line.append(np.asarray(b.line[sl], int))
             last_t, last_q = float(ts[-1]), b.Q[k1]
-    t, Q, ex, e, line = (np.concatenate(x) for x in (t, Q, ex, e, line))
+    t, Q, ex, e, line, V = (np.concatenate(x) for x in (t, Q, ex, e, line, V))
     # merge rows that are (nearly) at the same time into the last one of each group
     new = np.concatenate([[True], np.diff(t) > TIME_EPS])
     starts = np.nonzero(new)[0]
@@ -334,7 +332,7 @@ def trajectory(record):
     arm = record.arm
     return Trajectory(arm, tuple(arm.profile.driver_joint_names), t[ends], Q[ends],
                       np.maximum.reduceat(ex.astype(int), starts).astype(bool), np.add.reduceat(e, starts),
-                      line[ends])
+                      line[ends], V[ends])
 
 
 def check_limits(traj, profile=None):
@@ -350,10 +348,9 @@ def check_limits(traj, profile=None):
     before to the interval after it, over the mean of their durations; an
     interval in which the arm stands still (a wait, a retraction) counts as
     rest of zero duration, so stopping and starting are charged to the
-    moving interval next to them.  The planner times Cartesian moves by the
-    feedrate alone (like a printer firmware without acceleration planning),
-    so its own timing exceeds this at corners and at starts and stops;
-    :func:`retime` removes that.
+    moving interval next to them.  The one timing law keeps the commanded
+    motion within both limits everywhere, so samples of it (these rows
+    among them) pass this measure (:mod:`ambots.trajectory`).
 
     Returns a dict (the ``checks`` of the trajectory's YAML header)."""
     profile = profile or traj.arm.profile
@@ -381,16 +378,22 @@ def check_limits(traj, profile=None):
     }
 
 
-def _write_trajectory(record, traj, checks, plan, out_dir, info):
+#: how exported motion is timed (the summary's and the YAML header's ``timing``)
+TIMING = "one law"
+
+
+def _write_trajectory(record, traj, checks, plan, out_dir):
     name = record.name
     prof = record.arm.profile
     csv_path = os.path.join(out_dir, name + ".trajectory.csv")
-    cols = ["time_s"] + list(traj.joint_names) + ["extruding", "e_mm"]
+    cols = ["time_s"] + list(traj.joint_names) + ["extruding", "e_mm"] + \
+        ["%s_velocity" % j for j in traj.joint_names]
     with open(csv_path, "w") as f:
         f.write(",".join(cols) + "\n")
         for k in range(len(traj.t)):
-            f.write("%.9f,%s,%d,%.6f\n" % (traj.t[k], ",".join("%.9f" % q for q in traj.Q[k]),
-                                           int(traj.extrude[k]), traj.e_mm[k] + 0.0))
+            f.write("%.9f,%s,%d,%.6f,%s\n" % (traj.t[k], ",".join("%.9f" % q for q in traj.Q[k]),
+                                              int(traj.extrude[k]), traj.e_mm[k] + 0.0,
+                                              ",".join("%.9f" % v for v in traj.V[k])))
     header = {
         "arm": name, "robot_id": record.arm.id, "profile": prof.name, "brand": prof.brand,
         "cell": plan.cell.name, "plan": os.path.abspath(plan.path), "program": name + ".gcode",
@@ -405,11 +408,11 @@ def _write_trajectory(record, traj, checks, plan, out_dir, info):
         "limits": {d: {"lower": _finite(j.lower), "upper": _finite(j.upper), "velocity": j.velocity,
                        "acceleration": j.acceleration} for j, d in zip(prof.joints, traj.joint_names)},
         "velocity_scaling": prof.velocity_scaling,
-        "timing": info["timing"],
-        "timing_meaning": ("the planner's waypoints, re-timed (never faster) for the joint acceleration limits; "
-                           "barrier waits re-simulated" if info["timing"] == "accel" else
-                           "the planner's own timing (feedrates, no acceleration limit), as report.json checked"),
-        "collisions_rechecked": info["collisions_rechecked"],
+        "timing": TIMING,
+        "timing_meaning": ("the firmware's one timing law (ambots.trajectory), as report.json checked it: "
+                           "between rows the cubic Hermite through the rows' positions and *_velocity columns "
+                           "(rad/s), within every joint's speed limit and 80 % of its acceleration limit "
+                           "(x velocity_scaling); the nozzle at most at the programmed feedrate"),
         "checks": checks,
     }
     import yaml
@@ -622,6 +625,7 @@ def _moves(s, eb, planner):
     K = len(b.t)
     T = planner.kin.fk_batch(b.Q)                    # nozzle poses, base frame
     tip = T[:, :3, 3]
+    vmax = joint_limits(planner.arm.profile)[0]
     k = 0
     if eb.lead:
         s.extruder(False)
@@ -644,9 +648,13 @@ def _moves(s, eb, planner):
         if L > 1e-9:
             s.extruder(bool(np.any(b.extrude[k + 1:j + 1])))
             feed = (seg.feedrate if seg.feedrate > 0 else 1800.0) / 60000.0         # m/s
-            tp = getattr(b, "t_planned", b.t)                 # the planner's timing (not re-timed)
-            dt = float(tp[j] - tp[k])
-            v = max(min(feed, L / dt) if dt > 0 else feed, 1e-5)
+            # the cruise speed: the feedrate, capped where a joint would exceed its speed
+            # limit (the one timing law's limits; UR's own ramps use ``a``)
+            dq = np.abs(np.diff(b.Q[k:j + 1], axis=0))
+            dl = np.linalg.norm(np.diff(tip[k:j + 1], axis=0), axis=1)
+            t_min = (dq / vmax).max(axis=1)
+            cap = dl[t_min > 0] / t_min[t_min > 0]
+            v = max(min(feed, float(cap.min())) if len(cap) else feed, 1e-5)
             s.move_l(end, T[j, :3, :3], v, "line %d" % seg.line)
         k = j
 
@@ -682,27 +690,19 @@ def _parse_output(text):
     return kind, port
 
 
-#: what ``--timing`` accepts
-TIMINGS = ("accel", "planned")
-
-
-def export_plan(path, fmt, arms=None, cell=None, out=None, timing="accel", force=False, extruder_output="tool:0",
+def export_plan(path, fmt, arms=None, cell=None, out=None, force=False, extruder_output="tool:0",
                 tool_acceleration=1.2):
     """Export the plan in folder ``path`` as ``fmt`` (one of :data:`FORMATS`)
     for ``arms`` (names; default every arm of the job) into ``out``
     (default ``path``).
 
-    ``timing``: ``"accel"`` (default) re-times the planner's waypoints for
-    the joint acceleration limits (:func:`retime`; the barriers wait
-    accordingly) and checks the re-timed motion for collisions again;
-    ``"planned"`` keeps the planner's timing, the one report.json checked.
-    Refuses a plan whose report.json says it collided or did not finish, or
+    The motion is the plan's, timed by the one timing law
+    (:mod:`ambots.trajectory`) as ``plan`` checked it and the firmware runs
+    it.  Refuses a plan whose report.json says it collided or did not finish, or
     that has no report.json, unless ``force``.  Returns a summary dict
     (files written, per-arm figures, warnings)."""
     if fmt not in FORMATS:
         raise ExportError("unknown export format %r: expected one of %s" % (fmt, ", ".join(FORMATS)))
-    if timing not in TIMINGS:
-        raise ExportError("unknown timing %r: expected one of %s" % (timing, ", ".join(TIMINGS)))
     digital_out = _parse_output(extruder_output) if isinstance(extruder_output, str) else tuple(extruder_output)
     if not (isinstance(tool_acceleration, (int, float)) and 0 < tool_acceleration < 100):
         raise ExportError("tool acceleration must be in (0, 100) m/s^2, got %r" % (tool_acceleration,))
@@ -722,36 +722,23 @@ def export_plan(path, fmt, arms=None, cell=None, out=None, timing="accel", force
         if len(plan.programs) > 1:
             raise ExportError(_open_loop(path, plan))
     warnings = _check_report(plan, force)
-    result, records = record_plan(plan, retime=(timing == "accel"))
-    warnings += _compare_report(plan, records, same_timing=(timing == "planned"))
-    collisions = None
-    if timing == "accel":
-        from ambots.sim import check_motion
-        motion = check_motion(result, plan.cell)
-        collisions = motion["collisions"]
-        if sum(collisions.values()):
-            if not force:
-                raise ExportError("%s: the re-timed motion collides (%s); not exported (--timing planned exports "
-                                  "the timing plan checked; --force exports anyway)" % (path, collisions))
-            warnings.append("the re-timed motion collides: %s" % collisions)
+    result, records = record_plan(plan)
+    warnings += _compare_report(plan, records)
     out = out or path
     os.makedirs(out, exist_ok=True)
-    summary = {"format": fmt, "plan": path, "out": out, "cell": plan.cell.name, "timing": timing,
-               "makespan_s": round(result.makespan_s, 3), "collisions": collisions, "arms": {},
-               "warnings": warnings}
+    summary = {"format": fmt, "plan": path, "out": out, "cell": plan.cell.name, "timing": TIMING,
+               "makespan_s": round(result.makespan_s, 3), "arms": {}, "warnings": warnings}
     for n in names:
         rec = records[n]
         if fmt == "trajectory":
             traj = trajectory(rec)
             checks = check_limits(traj)
-            if not checks["velocity_ok"]:
-                raise ExportError("arm %s: the planned motion exceeds a joint speed limit (%s > %s rad/s); "
-                                  "nothing written" % (n, checks["max_velocity"], checks["velocity_limit"]))
-            if timing == "accel" and not checks["acceleration_ok"]:      # cannot happen: retime() guarantees it
-                raise ExportError("arm %s: re-timed motion exceeds an acceleration limit: %s"
-                                  % (n, checks["acceleration_worst"]))
-            info = {"timing": timing, "collisions_rechecked": collisions}
-            files = _write_trajectory(rec, traj, checks, plan, out, info)
+            if not (checks["velocity_ok"] and checks["acceleration_ok"]):   # a bug of the timing law
+                raise ExportError("arm %s: the planned motion exceeds a joint limit (speeds %s, limits %s; worst "
+                                  "acceleration %s); nothing written" % (n, checks["max_velocity"],
+                                                                        checks["velocity_limit"],
+                                                                        checks["acceleration_worst"]))
+            files = _write_trajectory(rec, traj, checks, plan, out)
             summary["arms"][n] = {"files": files, "samples": int(len(traj.t)), "duration_s": traj.duration,
                                   "checks": checks}
         else:
@@ -780,7 +767,7 @@ def _check_report(plan, force):
     return problems
 
 
-def _compare_report(plan, records, same_timing=True):
+def _compare_report(plan, records):
     """Warnings where the re-run differs from report.json (another cell file,
     edited programs, a ``--slow`` plan)."""
     rep = plan.report or {}
@@ -789,7 +776,7 @@ def _compare_report(plan, records, same_timing=True):
         a = (rep.get("arms") or {}).get(name) or {}
         if a.get("moves") is not None and a["moves"] != rec.moves:
             out.append("arm %s: %d moves executed, report.json says %d" % (name, rec.moves, a["moves"]))
-        if same_timing and a.get("done_at_s") is not None and rec.done_s is not None \
+        if a.get("done_at_s") is not None and rec.done_s is not None \
                 and abs(a["done_at_s"] - rec.done_s) > 2e-3:
             out.append("arm %s: done at %.3f s, report.json says %.3f s (planned with --slow, or another cell?)"
                        % (name, rec.done_s, a["done_at_s"]))

@@ -511,8 +511,8 @@ class Menu:
         alone = summary.get("one_arm_estimate_s")
         if alone:
             longest = max(a["print_time_s"] for a in summary["arms"].values())
-            self.say("  one arm alone would take about %.0f s; the longest arm here %.0f s (estimates at the "
-                     "programmed feeds)" % (alone, longest))
+            self.say("  one arm alone would take about %.0f s (the one timing law on a sample of the layers); "
+                     "the arms' G-code here, at the programmed feeds: longest %.0f s" % (alone, longest))
         self.say("wrote %s" % ", ".join(os.path.join(out, n) for n in
                                        [a + ".gcode" for a in self.programs] + ["job.json"]))
         return True

@@ -34,8 +34,9 @@ class Job:
     parts: list = field(default_factory=list)      #: partition.Part per arm
     sliced: Dict[str, str] = field(default_factory=dict)
     programs: dict = field(default_factory=dict)   #: arm name -> coordinate.ArmProgram
-    #: one arm printing the whole model: its G-code's time at the programmed
-    #: feeds (``gcode.summarize``), s; None for a one-arm job
+    #: the best arm printing the whole model alone, timed by the one timing law
+    #: on a sample of the layers (:func:`estimate_one_arm`), s; None for a one-arm
+    #: job or when no arm reaches the whole model
     one_arm_estimate_s: float = None
 
     def summary(self):
@@ -82,13 +83,16 @@ def slice_parts(parts, slicer="builtin", settings=None):
     return {p.arm.name: slice_mesh(p.to_trimesh(), settings, backend=slicer) for p in parts if not p.empty}
 
 
-def estimate_one_arm(mesh, slicer="builtin", settings=None):
-    """The whole model printed by one arm: the time of its G-code at the
-    programmed feeds (``gcode.summarize``), s -- what the split is measured
-    against."""
-    from ambots.gcode import parse_gcode_text, summarize
+def estimate_one_arm(mesh, cell, arms, slicer="builtin", settings=None):
+    """The whole model printed by one arm alone -- what the split is
+    measured against: the best of ``arms``, each timed by the firmware's one
+    timing law on a sample of the layers (:func:`ambots.motion.estimate_time`),
+    s; None if no arm reaches the whole model."""
+    from ambots.motion import estimate_time
     from ambots.slicer import slice_mesh
-    return summarize(parse_gcode_text(slice_mesh(mesh, settings, backend=slicer), "whole model"))["print_time_s"]
+    text = slice_mesh(mesh, settings, backend=slicer)
+    times = [t for t in (estimate_time(text, arm, cell, path="whole model") for arm in arms) if t is not None]
+    return min(times) if times else None
 
 
 def coordinate(sliced, parts, cell, mode="concurrent", **kw):
@@ -108,7 +112,7 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
     job.sliced = slice_parts(job.parts, slicer, settings)
     job.programs = coordinate(job.sliced, job.parts, cell, mode)
     if len(arms) > 1:
-        job.one_arm_estimate_s = estimate_one_arm(job.mesh, slicer, settings)
+        job.one_arm_estimate_s = estimate_one_arm(job.mesh, cell, arms, slicer, settings)
     return job
 
 

@@ -38,15 +38,19 @@ import numpy as np
 from ambots.errors import AmbotsError, UnreachableError
 from ambots.gcode import Dwell, Segment, parse_gcode_text
 from ambots.program import is_directive, parse_directive
-from ambots.trajectory import joint_limits
+from ambots.trajectory import SplineTiming, joint_limits
 from ambots.units import MM
 from ambots.workspace import down_in_base
 
-__all__ = ["Moves", "Directive", "Pause", "read_program", "Block", "MotionPlanner",
+__all__ = ["Moves", "Directive", "Pause", "read_program", "Block", "MotionPlanner", "estimate_time",
            "MotionError", "DEFAULT_TOLERANCE_MM", "FILAMENT_AREA_MM2"]
 
 #: largest distance (mm) between the nozzle and the programmed straight line
 DEFAULT_TOLERANCE_MM = 0.1
+#: distances (mm) from both ends of a straight move at which extra waypoints
+#: are placed (where the piece at that end is long enough): the ramps of the
+#: timing law at a corner happen over these
+RAMP_MM = (0.3, 1.0, 3.0)
 #: cross-section of 1.75 mm filament, mm^2
 FILAMENT_AREA_MM2 = np.pi * (1.75 / 2) ** 2
 
@@ -231,9 +235,11 @@ class MotionPlanner:
         other arms), a move that only the other arms' current poses block
         becomes a wait in place of ``blocked_wait_s`` s (``Block.blocked``)
         after which the runner plans it again, instead of an error.
-    timing : optional ``f(block) -> block`` applied to every block the
-        planner returns (e.g. :class:`ambots.trajectory.SplineTiming`: timed
-        for a real controller within the acceleration limits)
+    timing : the timing law applied to every block the planner returns
+        (default and only law in use: :class:`ambots.trajectory.SplineTiming`
+        for this planner -- the programmed feedrates as the wanted nozzle
+        speed, every joint within its speed and acceleration limits; the
+        block carries the commanded motion in ``block.motion``)
     """
 
     def __init__(self, arm, cell, kin=None, tolerance_mm=DEFAULT_TOLERANCE_MM, sample_mm=10.0,
@@ -252,7 +258,6 @@ class MotionPlanner:
         #: factor drawn uniformly from [lo, hi] (an arm whose speed varies
         #: from move to move; timing-robustness tests, ``plan --slow ARM=LO:HI``)
         self.time_jitter = None
-        self.timing = timing
         prof = arm.profile
         self.vmax, self.amax = joint_limits(prof)
         self.down = down_in_base(arm)
@@ -265,6 +270,7 @@ class MotionPlanner:
         Tb = np.linalg.inv(arm.base_pose) @ T_bed
         self._bed_R, self._bed_t = Tb[:3, :3] * MM, Tb[:3, 3]
         self._world = arm.base_pose
+        self.timing = timing if timing is not None else SplineTiming.for_planner(self)
 
     # -------------------------------------------------------- frames
     def bed_mm_to_base(self, P):
@@ -291,8 +297,11 @@ class MotionPlanner:
         return self.time_scale * float(rng.uniform(lo, hi))
 
     # -------------------------------------------------------- segments
-    def _timed(self, block):
-        return self.timing(block) if self.timing is not None else block
+    def _timed(self, block, scaled=True):
+        """``block`` timed by the one timing law, stretched by :meth:`_scale`
+        (``scaled``) when the arm is set to run slower than planned."""
+        f = self._scale() if scaled else 1.0
+        return self.timing(block, scale=f) if f != 1.0 else self.timing(block)
 
     def plan_moves(self, segments, q0):
         """A run of G-code segments starting at joint vector ``q0`` -> Block.
@@ -340,6 +349,18 @@ class MotionPlanner:
         # sample points: the start, then each segment's interior points and end
         seg_of = np.repeat(np.arange(n), pieces)                      # per interval
         frac = (np.arange(len(seg_of)) - np.repeat(np.cumsum(pieces) - pieces, pieces) + 1) / np.repeat(pieces, pieces)
+        # near both ends of a move, points at RAMP_MM from the end: where the arm
+        # rests at a corner, the timing law's cubics ramp the nozzle up to the
+        # feedrate (and down) over these short pieces, not over a whole sample
+        ramp = np.asarray(RAMP_MM)
+        near = ramp[None, :] < 0.45 * Lmm[:, None] / pieces[:, None]      # inside the end pieces
+        if near.any():
+            si, ri = np.nonzero(near)
+            f_extra = ramp[ri] / Lmm[si]
+            seg_of = np.concatenate([seg_of, si, si])
+            frac = np.concatenate([frac, f_extra, 1.0 - f_extra])
+            order = np.lexsort((frac, seg_of))
+            seg_of, frac = seg_of[order], frac[order]
         # (1 - f) S + f E puts a segment's last sample exactly on its end (S + (E - S) f
         # need not: 0.8 + (0.2 - 0.8) != 0.2), so a following E-only move has zero length
         P_mm = np.concatenate([S[:1], (1.0 - frac[:, None]) * S[seg_of] + frac[:, None] * E[seg_of]])
@@ -402,7 +423,7 @@ class MotionPlanner:
         if K >= 2:
             dq = np.abs(np.diff(Q, axis=0))
             dt[1:] = np.maximum(dt[1:], np.max(dq / self.vmax, axis=1))
-        t = np.cumsum(dt) * self._scale()
+        t = np.cumsum(dt)
         lines = np.array([s.line for s in segments])[seg_of_iv]
         layers = np.maximum(np.array([s.layer for s in segments]), 0)[seg_of_iv]
         travel = float(L_iv[~extr].sum()) * MM
@@ -451,7 +472,7 @@ class MotionPlanner:
                 return self._still(q0, line, layer, MotionError(line, "no collision-free path: %s" % exc))
             how = "joint" if len(path) == 2 else "ompl"
         path = interpolate(path, 0.05)
-        t = np.asarray(time_parametrize(path, self.vmax, self.amax), dtype=float) * self._scale()
+        t = np.asarray(time_parametrize(path, self.vmax, self.amax), dtype=float)
         K = len(path)
         tip = self.tip_world(path)
         L = float(np.linalg.norm(np.diff(tip, axis=0), axis=1).sum())
@@ -481,4 +502,50 @@ class MotionPlanner:
         """Stand still for ``seconds``."""
         q = np.asarray(q, dtype=float)
         return self._timed(Block(np.array([0.0, float(seconds)]), np.stack([q, q]), self.tip_world(np.stack([q, q])),
-                     np.array([line, line]), np.array([layer, layer]), np.zeros(2, dtype=bool), np.zeros(2)))
+                     np.array([line, line]), np.array([layer, layer]), np.zeros(2, dtype=bool), np.zeros(2)),
+                           scaled=False)
+
+
+def estimate_time(text, arm, cell, max_layers=6, path="<program>"):
+    """Seconds ``arm`` needs to execute the G-code ``text`` (bed frame) alone,
+    timed by the one timing law: a :class:`MotionPlanner` plans every move
+    of up to ``max_layers`` layers spread evenly over the print (the first
+    and the last among them), dwells count as written, and the time of each
+    layer in between is interpolated linearly from its neighbours.
+    Directives are ignored (no other arm to wait for).  None when a move of
+    a planned layer is out of the arm's reach."""
+    items, _, _ = read_program(text, path)
+    layers, layer = {}, 0
+    for it in items:
+        if isinstance(it, Moves):
+            layer = max(int(it.segments[0].layer), 0)
+        if isinstance(it, (Moves, Pause)):
+            layers.setdefault(layer, []).append(it)
+    if not layers:
+        return 0.0
+    order = sorted(layers)
+    pick = sorted({order[int(round(i))] for i in np.linspace(0, len(order) - 1, min(max_layers, len(order)))})
+    planner = MotionPlanner(arm, cell)
+    q = np.asarray(arm.profile.home, dtype=float)
+    # from home to where the print starts: once, not part of any layer's time
+    first = layers[order[0]][0]
+    lead = 0.0
+    if isinstance(first, Moves):
+        block = planner.joint_move_to(planner.bed_mm_to_base(np.array([first.segments[0].start]))[0], q)
+        if block.error is not None:
+            return None
+        lead, q = block.duration, block.Q[-1]
+    times = []
+    for lay in pick:
+        t = 0.0
+        for it in layers[lay]:
+            if isinstance(it, Pause):
+                t += it.seconds
+                continue
+            block = planner.plan_moves(it.segments, q)
+            if block.error is not None:
+                return None
+            t += block.duration
+            q = block.Q[-1]
+        times.append(t)
+    return lead + float(np.interp(order, pick, times).sum())

@@ -124,6 +124,7 @@ class ArmRunner:
         self.record = record
         self.trace_t: List[np.ndarray] = []
         self.trace_q: List[np.ndarray] = []
+        self.trace_v: List[np.ndarray] = []      #: joint speeds at the trace's knots (rad/s)
         self._trace_end = -np.inf    #: simulated time of the last waypoint recorded
         #: optional ``f(block, t0, k)``: told of every block the arm starts (k = 0) or resumes (at
         #: waypoint k) at simulated time ``t0`` (a driver streaming the motion to a controller)
@@ -158,12 +159,15 @@ class ArmRunner:
         return 100.0 * min(1.0, self.done_line / self.n_lines) if self.n_lines else 0.0
 
     def joints(self, now=None):
-        """Joint vector (n,) at ``now`` (default: the runner's clock),
-        interpolated between waypoints while moving."""
+        """Joint vector (n,) at ``now`` (default: the runner's clock): while
+        moving, the block's commanded motion (the one timing law) at that
+        instant, never past the next waypoint the runner has not reached."""
         b = self.block
         if b is None or now is None or self.state not in (ArmState.PRINTING,) or self.k + 1 >= len(b.t):
             return self.q.copy()
         t = min(max(now - self.block_t0, b.t[self.k]), b.t[self.k + 1])
+        if b.motion is not None:
+            return b.motion.eval(np.array([t]))[0][0]
         span = b.t[self.k + 1] - b.t[self.k]
         u = 0.0 if span <= 0 else (t - b.t[self.k]) / span
         return b.Q[self.k] + u * (b.Q[self.k + 1] - b.Q[self.k])
@@ -255,6 +259,7 @@ class ArmRunner:
         elif kind is Pause:
             if self.state is ArmState.PRINTING:
                 self.pause_requested = True
+                self._brake(now)
             elif self.state is ArmState.WAITING:
                 self.state = ArmState.PAUSED
                 self._report()
@@ -270,6 +275,20 @@ class ArmRunner:
                 self.wait = msg
                 self.state = ArmState.WAITING
                 self._report()
+
+    def _brake(self, now):
+        """A pause while moving: brake within the acceleration limits to rest
+        on the first waypoint ending a G-code line that the arm can reach so
+        (:func:`ambots.trajectory.stop_at_line_end`, the one timing law);
+        the block's times after ``now`` change accordingly.  A driver that
+        streams the motion (:attr:`on_motion`) plans the stop itself, after
+        what it has sent (:attr:`pause_at`)."""
+        b = self.block
+        if b is None or b.motion is None or self.on_motion is not None:
+            return
+        from ambots.trajectory import stop_at_line_end
+        H = max(now, self.clock) - self.block_t0
+        self.pause_at = (b, stop_at_line_end(b, max(H, float(b.t[self.k])), self.planner.timing))
 
     def _resume(self, now):
         self.pause_requested = False
@@ -622,8 +641,10 @@ class ArmRunner:
             t0 = self.block_t0 + b.t[0]
             sl_rec = slice(k0, k1 + 1) if k0 == 0 and t0 > self._trace_end else sl
             self._trace_end = self.block_t0 + b.t[k1]
-            self.trace_t.append(self.block_t0 + b.t[sl_rec])
-            self.trace_q.append(b.Q[sl_rec])
+            tau, Q, V = _knots(b, b.t[sl_rec], b.Q[sl_rec])
+            self.trace_t.append(self.block_t0 + tau)
+            self.trace_q.append(Q)
+            self.trace_v.append(V)
 
     def _end_block(self):
         b = self.block
@@ -651,6 +672,28 @@ class ArmRunner:
         if self.after_block is not None:        # a manual A7 move
             self.state, self.after_block = self.after_block, None
             self._report(with_position=True)
+
+
+#: s between the knots recorded while an arm brakes (the warp of a pause is
+#: not a cubic between waypoints; at this spacing the recorded Hermite knots
+#: follow it to well under a micrometre)
+BRAKE_KNOT_S = 0.01
+
+
+def _knots(block, tau, Q):
+    """The executed motion of ``block`` at block times ``tau`` (the
+    waypoints reached) as Hermite knots ``(tau, Q, V)``: positions and speeds
+    of the commanded motion, plus knots every :data:`BRAKE_KNOT_S` s where
+    the motion brakes; without a motion (a block of one waypoint), at rest."""
+    m = block.motion
+    if m is None or len(tau) == 0:
+        return tau, Q, np.zeros_like(Q)
+    extra = [np.arange(max(p.t_b, tau[0]), min(p.end, tau[-1]), BRAKE_KNOT_S)
+             for p in m.pieces if p.c is not None and p.t_b < tau[-1] and p.end > tau[0]]
+    if extra:
+        tau = np.union1d(tau, np.concatenate(extra))
+    q, v = m.eval(tau)[:2]
+    return tau, q, v
 
 
 def _remaining(segments, line, line_done, nozzle_mm):

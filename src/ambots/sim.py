@@ -128,17 +128,11 @@ def simulate(programs, cell, dt=2.0, max_time=10 * 24 * 3600.0, planner_kw=None,
 
 
 def _trace(runner):
+    """A runner's executed motion as Hermite knots ``(t, Q, V)``."""
     if not runner.trace_t:
         q = runner.q[None]
-        return np.array([0.0]), q
-    return np.concatenate(runner.trace_t), np.concatenate(runner.trace_q)
-
-
-def _resample(t, Q, grid):
-    out = np.empty((len(grid), Q.shape[1]))
-    for j in range(Q.shape[1]):
-        out[:, j] = np.interp(grid, t, Q[:, j])
-    return out
+        return np.array([0.0]), q, np.zeros_like(q)
+    return np.concatenate(runner.trace_t), np.concatenate(runner.trace_q), np.concatenate(runner.trace_v)
 
 
 def check_motion(result, cell):
@@ -175,7 +169,9 @@ def _part_growth(beads, bed_z):
 
 def check_traces(traces, arms, cell, beads=None):
     """:func:`check_motion` for recorded traces: ``traces`` {name: (t (K,)
-    s, Q (K, n) rad)}, ``arms`` {name: arm}, ``beads`` (with times) for the
+    s, Q (K, n) rad[, V (K, n) rad/s])} (with V: the cubic Hermite motion
+    through the knots, as the one timing law commands it; without: linear
+    between knots), ``arms`` {name: arm}, ``beads`` (with times) for the
     arm-part check (None: not checked)."""
     from ambots.collision import ArmBody, bed_clearance, clearance_between, part_clearance
     from ambots.contact import RESOLUTION_M, Sweep, scan, sweep_radii
@@ -183,7 +179,8 @@ def check_traces(traces, arms, cell, beads=None):
     t_start = min(float(tr[0][0]) for tr in traces.values())     # a wall clock starts far from 0
     t_end = max(float(tr[0][-1]) for tr in traces.values())
     bodies = {n: ArmBody.from_arm(arms[n]) for n in names}
-    sweeps = {n: Sweep(*traces[n], sweep_radii(bodies[n])) for n in names}
+    sweeps = {n: Sweep(traces[n][0], traces[n][1], sweep_radii(bodies[n]),
+                       traces[n][2] if len(traces[n]) > 2 else None) for n in names}
     contact = CONTACT_MM * MM
     out = {"collisions": {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}, "samples": 0,
            "min_clearance_mm": None, "min_bed_clearance_mm": None, "min_part_clearance_mm": None,

@@ -64,7 +64,7 @@ from ambots.protocol import ArmState
 from ambots.units import MM
 
 __all__ = ["DEFAULT_SAMPLE_PERIOD", "ACCEL_SHARE", "DriverSpec", "driver_spec", "joint_limits",
-           "finite_differences", "retime", "knot_slopes", "Spline", "smooth", "SplineTiming", "Motion",
+           "finite_differences", "retime", "knot_slopes", "segment_bounds", "hermite", "Spline", "smooth", "SplineTiming", "Motion",
            "stop_at_line_end", "stop_now", "Segment", "Chunk", "Stream"]
 
 #: s between the points of a trajectory for a controller whose profile names no ``sample_period``
@@ -234,7 +234,7 @@ def _deviation(tip, Q, T, m, line):
     return out
 
 
-def _segment_bounds(T, D, m):
+def segment_bounds(T, D, m):
     """Largest |speed| and |acceleration| (K-1, n) of every cubic Hermite segment."""
     T = T[:, None]
     V = D / T
@@ -247,6 +247,19 @@ def _segment_bounds(T, D, m):
     inside = (s > 0) & (s < 1)
     vs = np.where(inside, np.abs(m0 + B * s + C * s * s), 0.0)
     return np.maximum(np.maximum(np.abs(m0), np.abs(m1)), vs), np.maximum(np.abs(a0), np.abs(a1))
+
+
+def hermite(t, Q, V, times):
+    """Positions (M, n) at ``times`` (M,) of the cubic Hermite motion through
+    knots ``t`` (K,) strictly increasing, ``Q`` (K, n), slopes ``V`` (K, n),
+    held before the first knot and after the last."""
+    t = np.asarray(t, float)
+    tau = np.clip(np.atleast_1d(np.asarray(times, float)), t[0], t[-1])
+    if len(t) < 2:
+        return np.repeat(np.asarray(Q, float)[:1], len(tau), axis=0)
+    k = np.clip(np.searchsorted(t, tau, side="right") - 1, 0, len(t) - 2)
+    T = (t[k + 1] - t[k])[:, None]
+    return _hermite(Q[k], Q[k + 1], V[k], V[k + 1], T, (tau - t[k])[:, None] / T)
 
 
 class Spline:
@@ -263,7 +276,7 @@ class Spline:
         self.E = np.zeros(len(self.t)) if E is None else np.asarray(E, float)
         self.idx = np.arange(len(self.t)) if idx is None else np.asarray(idx, int)
         if len(self.t) > 1:
-            self.vseg, self.aseg = _segment_bounds(np.diff(self.t), np.diff(self.Q, axis=0), self.V)
+            self.vseg, self.aseg = segment_bounds(np.diff(self.t), np.diff(self.Q, axis=0), self.V)
         else:
             self.vseg = self.aseg = np.zeros((0, self.Q.shape[1]))
 
@@ -330,15 +343,40 @@ def _groups(t):
     return last, grp
 
 
-def _ratios(T, D, m, vmax, amax):
-    vs, as_ = _segment_bounds(T, D, m)
-    return np.maximum(vs / vmax, np.sqrt(as_ / amax)).max(axis=1)
+def _progress_peak(T, D, m):
+    """Largest rate (K-1,) 1/s at which each cubic Hermite segment advances
+    along its chord: ``max_s u'(s)`` with ``u`` the projection of the
+    position on the chord (0 at the start, 1 at the end).  A segment of a
+    straight G-code move is short, so the nozzle's speed is its length times
+    this rate; at a constant pace it is 1/T."""
+    DD = np.maximum(np.einsum("ij,ij->i", D, D), 1e-300)
+    p0 = np.einsum("ij,ij->i", m[:-1], D) / DD
+    p1 = np.einsum("ij,ij->i", m[1:], D) / DD
+    B = 6.0 / T - 4 * p0 - 2 * p1            # u'(s) = p0 + B s + C s^2
+    C = -6.0 / T + 3 * p0 + 3 * p1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(C != 0, -B / (2 * np.where(C != 0, C, 1.0)), -1.0)
+    inside = (s > 0) & (s < 1)
+    mid = np.where(inside, p0 + B * s + C * s * s, -np.inf)
+    return np.maximum(np.maximum(p0, p0 + B + C), mid)
 
 
-def _stretch(T, D, moving, stop, vmax, amax, max_iter):
-    """Durations (never shorter) at which every segment is within the limits."""
+def _ratios(T, D, m, vmax, amax, pace=None):
+    vs, as_ = segment_bounds(T, D, m)
+    r = np.maximum(vs / vmax, np.sqrt(as_ / amax)).max(axis=1)
+    if pace is not None:                 # a straight move's nozzle: never above its feedrate
+        feed = np.isfinite(pace)
+        if feed.any():
+            r = np.where(feed, np.maximum(r, np.where(feed, pace, 0.0) * _progress_peak(T, D, m)), r)
+    return r
+
+
+def _stretch(T, D, moving, stop, vmax, amax, max_iter, pace=None):
+    """Durations (never shorter) at which every segment is within the limits
+    (and, where ``pace`` (K-1,) is finite, advances along its chord no
+    faster than once per ``pace`` s: the feedrate's duration)."""
     for _ in range(max_iter):
-        r = np.where(moving, _ratios(T, D, knot_slopes(T, D, stop), vmax, amax), 0.0)
+        r = np.where(moving, _ratios(T, D, knot_slopes(T, D, stop), vmax, amax, pace), 0.0)
         if r.max() <= 1.0:
             return T
         # stretch every segment over a limit, its neighbours a little (their slopes meet it)
@@ -346,7 +384,7 @@ def _stretch(T, D, moving, stop, vmax, amax, max_iter):
         g = np.sqrt(np.maximum(np.concatenate([[1.0], f[:-1]]), np.concatenate([f[1:], [1.0]])))
         T = np.where(moving, T * np.maximum(f, g), T)
     for _ in range(3):          # uniformly: speeds scale by 1/f, accelerations by 1/f^2
-        worst = float(np.where(moving, _ratios(T, D, knot_slopes(T, D, stop), vmax, amax), 0.0).max())
+        worst = float(np.where(moving, _ratios(T, D, knot_slopes(T, D, stop), vmax, amax, pace), 0.0).max())
         if worst <= 1.0:
             break
         T = np.where(moving, T * worst * (1 + 1e-9), T)
@@ -358,7 +396,12 @@ def smooth(t, Q, vmax, amax, E=None, tip=None, tolerance=1e-4, line=None, joint_
     """A block's waypoints ``Q`` (K, n) planned at times ``t`` (K,) ->
     ``(times (K,), Spline)``: times never shorter than ``t`` at which the
     cubic through the waypoints (:func:`knot_slopes`) stays within ``vmax``
-    and ``amax`` everywhere; ``E`` (K,) extruder positions.
+    and ``amax`` everywhere; ``E`` (K,) extruder positions.  Along a
+    straight G-code move (``line``) the nozzle also never runs faster than
+    ``t`` says (the feedrate): each segment advances along its chord at
+    most once per its planned duration (:func:`_progress_peak`), so the
+    nozzle keeps the feedrate between corners and ramps up and down at them
+    within the limits, never overshooting it.
 
     The arm passes at rest (slope 0) the waypoints next to a segment that
     strays from its straight line -- at a corner of the path: a segment of
@@ -372,6 +415,7 @@ def smooth(t, Q, vmax, amax, E=None, tip=None, tolerance=1e-4, line=None, joint_
     the same time share one knot (they must be equal)."""
     Q = np.asarray(Q, float)
     vmax, amax = np.asarray(vmax, float), np.asarray(amax, float)
+    t_feed = np.asarray(t, float)
     t = retime(t, Q, amax)                       # a first guess within the measure
     last, grp = _groups(t)
     tu, Qu = t[last], Q[last]
@@ -383,11 +427,15 @@ def smooth(t, Q, vmax, amax, E=None, tip=None, tolerance=1e-4, line=None, joint_
     moving = np.any(D != 0, axis=1)
     cart = np.zeros(len(T), bool) if line is None or tip is None else np.asarray(line, bool)[last[1:]]
     limit = np.where(cart, tolerance, joint_tolerance)
+    # a segment of a straight move takes at least the duration its feedrate gives
+    # (the waypoints' times as planned): its nozzle never runs faster than that
+    pace = np.where(cart & moving, np.diff(t_feed[last]), np.inf)
+    pace = np.where(pace > 0, pace, np.inf)
     stop = np.zeros(len(tu), bool)
     stop[0] = stop[-1] = True
     stop[1:-1] = ~moving[:-1] | ~moving[1:]
     while True:
-        T = _stretch(T, D, moving, stop, vmax, amax, max_iter)
+        T = _stretch(T, D, moving, stop, vmax, amax, max_iter, pace)
         m = knot_slopes(T, D, stop)
         off = np.nonzero(moving & (_deviation(tip, Qu, T, m, cart) > limit) & ~(stop[:-1] & stop[1:]))[0]
         if not len(off):
@@ -434,11 +482,19 @@ class SplineTiming:
         """:func:`smooth` with this timing's limits."""
         return smooth(t, Q, self.vmax, self.share * self.amax, E, self.tip, self.tolerance, line)
 
-    def __call__(self, block):
+    def __call__(self, block, scale=1.0):
+        """Time ``block`` (in place; returned); ``scale`` >= 1 then stretches
+        the timed motion (speeds / scale, accelerations / scale^2: an arm
+        running slower than planned)."""
         if len(block.t) < 2:
             block.motion = None
             return block
-        block.t, spline = self.spline(block.t, block.Q, block_filament(block), block.cartesian)
+        t, spline = self.spline(block.t, block.Q, block_filament(block), block.cartesian)
+        if scale != 1.0:
+            t = t[0] + (t - t[0]) * scale
+            spline = Spline(spline.t[0] + (spline.t - spline.t[0]) * scale, spline.Q, spline.V / scale,
+                            spline.E, spline.idx)
+        block.t = t
         block.motion = Motion(spline)
         return block
 

@@ -216,17 +216,25 @@ def test_beads_follow_forward_kinematics_not_the_commanded_points(arm, cell, pla
 
 
 def test_joints_between_waypoints_follow_the_timed_trajectory(reference, arm, cell, planner):
-    """joints(now) is the joint-linear interpolation of the executed
-    waypoints at that time (what a controller would command)."""
+    """joints(now) is the commanded motion at that time: the cubic Hermite
+    motion through the executed knots (positions and speeds) the runner
+    recorded, evaluated here by the textbook Hermite basis."""
     ref = reference
     tt = np.concatenate([[0.0], np.concatenate(ref.trace_t)])
     tq = np.concatenate([np.asarray(arm.profile.home, float)[None], np.concatenate(ref.trace_q)])
+    tv = np.concatenate([np.zeros((1, tq.shape[1])), np.concatenate(ref.trace_v)])
+    keep = np.concatenate([np.diff(tt) > 0, [True]])
+    tt, tq, tv = tt[keep], tq[keep], tv[keep]
     r = new_runner(arm, cell, planner)
     load_and_start(r)
     for t in np.arange(0.37, ref.stats.done_s - 0.5, 1.13):
         r.advance(t)
         assert r.state is ArmState.PRINTING and r.clock == t
-        want = np.array([np.interp(t, tt, tq[:, j]) for j in range(tq.shape[1])])
+        k = int(np.searchsorted(tt, t, side="right")) - 1
+        h = tt[k + 1] - tt[k]
+        s = (t - tt[k]) / h
+        want = ((2 * s**3 - 3 * s**2 + 1) * tq[k] + (s**3 - 2 * s**2 + s) * h * tv[k]
+                + (-2 * s**3 + 3 * s**2) * tq[k + 1] + (s**3 - s**2) * h * tv[k + 1])
         np.testing.assert_allclose(r.joints(t), want, atol=1e-9)
 
 
@@ -251,8 +259,10 @@ def test_pause_lands_on_a_line_end_and_resume_gives_the_same_deposit(reference, 
     for line in got:
         assert got[line] == pytest.approx(want[line], abs=1e-9)
     np.testing.assert_allclose(r.nozzle_mm(), (-30, 0, 0.2), atol=1e-3)
+    # it braked within the acceleration limits: rests on the line's end later than
+    # the unpaused run passed it, within a few seconds
     t_stop = concat(r.beads, "t").max()
-    assert t_stop == pytest.approx(t9.max())
+    assert t9.max() - 1e-9 <= t_stop < t9.max() + 5.0
     # paused: nothing moves while time passes
     q, n = r.q.copy(), len(r.beads)
     r.advance(t_pause + 60.0)
@@ -266,14 +276,17 @@ def test_pause_lands_on_a_line_end_and_resume_gives_the_same_deposit(reference, 
     run(r)
     assert r.state is ArmState.DONE
     same_beads(r, ref)
+    # times: unchanged up to the pause request; braking to rest and starting
+    # again from rest cost a little more motion time than the uninterrupted run
     shift = (t_pause + 60.0) - t_stop
     t_ref, t_got = concat(ref.beads, "t"), concat(r.beads, "t")
-    before = t_ref <= t_stop
+    before = t_ref <= t_pause
     np.testing.assert_allclose(t_got[before], t_ref[before])
-    np.testing.assert_allclose(t_got[~before], t_ref[~before] + shift, atol=1e-9)
+    assert np.all(t_got[t_ref > t_stop] >= t_pause + 60.0)
     assert r.stats.idle_time_s == pytest.approx(shift)
-    assert r.stats.print_time_s == pytest.approx(ref.stats.print_time_s)
-    assert r.stats.done_s == pytest.approx(ref.stats.done_s + shift)
+    extra = r.stats.print_time_s - ref.stats.print_time_s
+    assert 0.0 <= extra < 5.0
+    assert r.stats.done_s == pytest.approx(ref.stats.done_s + shift + extra)
 
 
 def test_pause_in_the_travel_from_home_stops_at_its_end(arm, cell, planner):

@@ -23,7 +23,8 @@ from ambots.config import default_cell_path, load_cell
 from ambots.coordinate import _read_layers, adjacent_arms, seam_planes, seam_zones_for
 from ambots.job import run_job
 from ambots.model import arm_kinematics
-from ambots.sim import _resample, _trace, check_motion, simulate
+from ambots.contact import Sweep
+from ambots.sim import _trace, check_motion, simulate
 
 #: cell, model box (mm), arms (None: the cell's): small jobs of a few layers
 LAYOUTS = {
@@ -52,8 +53,8 @@ def jobs(tmp_path_factory):
 def nozzle_slack(result, cell, job, step_s=0.1):
     """For every two adjacent arms: the smallest (sum of the two nozzles'
     distances to the plane between them - the pair's zone), mm, over the
-    executed motion sampled every ``step_s`` simulated seconds (joints
-    interpolated between executed waypoints, as the collision check does),
+    executed motion sampled every ``step_s`` simulated seconds (the
+    executed Hermite motion, as the collision check evaluates it),
     while both nozzles are at most at the printable height: the rule is
     about arms working on the part; home and park poses (and the moves
     between them and the part) are above it, out of the rule, and covered
@@ -65,11 +66,12 @@ def nozzle_slack(result, cell, job, step_s=0.1):
     read = {a.name: _read_layers(job.sliced[a.name], a.name) for a in arms}
     adjacent = adjacent_arms(arms, read, planes, zones)
     traces = {n: _trace(r) for n, r in result.runners.items()}
-    grid = np.arange(0.0, max(float(t[-1]) for t, _ in traces.values()) + step_s, step_s)
+    grid = np.arange(0.0, max(float(tr[0][-1]) for tr in traces.values()) + step_s, step_s)
     inv = np.linalg.inv(cell.bed.pose)
     nozzle = {}
     for name, r in result.runners.items():
-        T = arm_kinematics(r.arm).fk_batch(_resample(*traces[name], grid))
+        t, Q, V = traces[name]
+        T = arm_kinematics(r.arm).fk_batch(Sweep(t, Q, np.zeros(Q.shape[1]), V).at(grid))
         world = T[:, :3, 3] @ r.arm.base_pose[:3, :3].T + r.arm.base_pose[:3, 3]
         nozzle[name] = (world @ inv[:3, :3].T + inv[:3, 3]) * 1000.0
     top = cell.bed.max_height * 1000.0

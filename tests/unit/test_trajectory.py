@@ -106,10 +106,11 @@ def test_a_square_is_timed_within_the_limits_and_stays_on_its_lines(cell, name):
     dist = np.linalg.norm(P[ext][:, None] - (A0[None] + u[..., None] * d[None]), axis=2).min(axis=1)
     assert dist.max() < 0.1
     tips = pl.world_to_bed_mm(b.tip)
-    at_corner = np.all(np.isclose(np.abs(tips[:, :2]), 10.0, atol=1e-6), axis=1)
+    # at a corner the arm rests or rounds it within the 0.1 mm above (short ramp
+    # pieces near the corners: RAMP_MM); away from the corners it never rests
+    near_corner = np.all(np.abs(np.abs(tips[:, :2]) - 10.0) <= 3.0 + 1e-6, axis=1)
     rest = np.all(sp.V == 0, axis=1)
-    assert rest[np.searchsorted(sp.idx, np.nonzero(at_corner)[0])].all()
-    assert not rest[1:-1][~at_corner[sp.idx][1:-1]].any()        # and nowhere else on the square
+    assert not rest[1:-1][~near_corner[sp.idx][1:-1]].any()
 
 
 def test_retractions_and_hops_rest_and_push_filament_in_time(cell):
@@ -246,7 +247,7 @@ def test_a_pause_brakes_to_rest_at_a_line_end_and_resume_lays_the_same(cell, pro
     braked = 0
     for when in times:
         r, timing, st, chunks, log = stream_run(cell, "kinova", program,
-                                                [(when, Pause(arm.id)), (when + 3.0, Resume(arm.id))])
+                                                [(when, Pause(arm.id)), (when + 6.0, Resume(arm.id))])
         assert r.state is ArmState.DONE
         t, Q, E, V = joined(chunks, 0.001)
         rv, ra = within_limits(arm, t, Q)

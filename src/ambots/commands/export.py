@@ -5,7 +5,8 @@ for real controllers (see :mod:`ambots.export`)."""
 def register(sub):
     p = sub.add_parser("export", help="write a planned job as joint trajectories (CSV) or URScript programs",
                        description="Execute the programs of a `plan` output folder again with the firmware's "
-                                   "motion pipeline and write, per arm, the timed joint trajectory "
+                                   "motion pipeline and write, per arm, the joint trajectory timed by the firmware's one timing "
+                                   "law "
                                    "(--format trajectory: <arm>.trajectory.csv + .yaml header) or a URScript "
                                    "program (--format urscript, Universal Robots arms only: <arm>.script).")
     p.add_argument("dir", help="output folder of `python -m ambots plan` (<arm>.gcode, job.json, report.json)")
@@ -13,10 +14,6 @@ def register(sub):
     p.add_argument("--arms", help="comma-separated subset of the job's arms (default: all)")
     p.add_argument("--cell", help="cell YAML the job was planned for (default: the package's cell job.json names)")
     p.add_argument("--out", help="folder for the exported files (default: DIR)")
-    p.add_argument("--timing", default="accel", metavar="accel|planned",
-                   help="accel (default): the planner's waypoints re-timed for the joint acceleration limits "
-                        "(slower where needed; barriers re-simulated, collisions checked again); planned: the "
-                        "planner's own timing (feedrates only), the one `plan` checked")
     p.add_argument("--extruder-output", default="tool:0", metavar="tool:N|standard:N",
                    help="URScript: the digital output that switches the extruder (default tool:0)")
     p.add_argument("--tool-acceleration", type=float, default=1.2, metavar="M_S2",
@@ -31,14 +28,13 @@ def run(args):
 
     from ambots.export import export_plan
 
-    s = export_plan(args.dir, args.format, arms=args.arms, cell=args.cell, out=args.out, timing=args.timing,
+    s = export_plan(args.dir, args.format, arms=args.arms, cell=args.cell, out=args.out,
                     force=args.force, extruder_output=args.extruder_output,
                     tool_acceleration=args.tool_acceleration)
     for w in s["warnings"]:
         print("ambots: warning: %s" % w, file=sys.stderr)
-    print("%s -> %s: %s, cell %s, %s timing, makespan %.1f s (simulated)%s" % (
-        s["plan"], s["out"], s["format"], s["cell"], s["timing"], s["makespan_s"],
-        "" if s["collisions"] is None else ", collisions %s" % s["collisions"]))
+    print("%s -> %s: %s, cell %s, %s timing, makespan %.1f s (simulated)" % (
+        s["plan"], s["out"], s["format"], s["cell"], s["timing"], s["makespan_s"]))
     for name, a in s["arms"].items():
         if s["format"] == "trajectory":
             c = a["checks"]

@@ -79,8 +79,8 @@ def summary_lines(out_dir, capture=False):
             format(round(makespan), ","), _duration(makespan), ", %.0f s wall" % wall if wall else ""))
         alone = job.get("one_arm_estimate_s")
         if alone and len(arms) > 1:
-            lines.append("  one arm alone %s s (estimate: the whole model's G-code at its feeds); "
-                         "speed-up %.2fx" % (format(round(alone), ","), alone / makespan))
+            lines.append("  one arm alone %s s (estimate: the best arm alone, timed by the one timing law on "
+                         "a sample of the layers); speed-up %.2fx" % (format(round(alone), ","), alone / makespan))
     clearance = rep.get("min_clearance_mm")
     if checked:
         lines.append("  contacts      %d (%s)%s" % (

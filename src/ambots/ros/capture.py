@@ -112,7 +112,7 @@ class PrintRecorder:
         self.checks = 0
         self._states = {}          #: arm -> {stamp ns: joints}, the latest states as they arrived
         self.started = time.time()
-        self.traces = {}          #: arm -> [(K, 1 + n) rows of (simulated t, joints)] as executed
+        self.traces = {}          #: arm -> [(K, 1 + 2n) rows of (ROS time, joints, joint speeds)] as executed
         self.bead_times = {}      #: arm -> [(K, 7) rows of (p0, p1, simulated t)]
         self._row_seq = {}
         self.trace_gaps = 0       #: trace/bead chunks never received (numbered by the firmware)
@@ -179,7 +179,8 @@ class PrintRecorder:
             keep = np.ones(len(t), dtype=bool)
             keep[:-1] = t[:-1] < np.minimum.accumulate(t[::-1])[::-1][1:]
             rows = rows[keep]
-            out[n] = (rows[:, 0], rows[:, 1:])
+            dof = (rows.shape[1] - 1) // 2                 # rows (t, q..., v...): Hermite knots
+            out[n] = (rows[:, 0], rows[:, 1:1 + dof], rows[:, 1 + dof:])
         arms = {a.name: a for a in self.cell.arms if a.name in out}
         bead_list = [SimpleNamespace(p0=b[:, 0:3], p1=b[:, 3:6], t=b[:, 6]) for b in beads.values()]
         return check_traces(out, arms, self.cell, beads=bead_list)

@@ -391,10 +391,12 @@ class FirmwareNode:
         out = [m for _, m in r.outbox]
         r.outbox.clear()
         trace = beads = None
-        if r.trace_t:             # the executed waypoints, simulated time: rows (t, q...)
-            trace = np.column_stack([np.concatenate(r.trace_t), np.concatenate(r.trace_q)])
+        if r.trace_t:             # the executed motion as Hermite knots, ROS time: rows (t, q..., v...)
+            trace = np.column_stack([np.concatenate(r.trace_t), np.concatenate(r.trace_q),
+                                     np.concatenate(r.trace_v)])
             r.trace_t.clear()
             r.trace_q.clear()
+            r.trace_v.clear()
         if r.beads:               # the beads with their times: rows (p0 xyz, p1 xyz, t)
             beads = np.concatenate([np.column_stack([b.p0, b.p1, b.t]) for b in r.beads])
         for bead in r.beads:
