@@ -413,7 +413,11 @@ def _concurrent(arms, read, park, home, n_layers, planes, zones):
     if colour is not None:
         near = {a: [planes[a, b] for b in names if b in adjacent[a]] for a in names}
         zone = max([zones[a, b] for a in names for b in adjacent[a]] or [0.0])
-        return _banded(arms, read, park, n_layers, zone, near, colour, adjacent, home, zones)
+        programs = _banded(arms, read, park, n_layers, zone, near, colour, adjacent, home, zones)
+        if programs is not None:
+            return programs
+    # no two colours, or an arm between two seams cannot stand clear of both
+    # (their zones about as wide as its part): the scheduled timeline
     return _timeline(arms, read, park, home, n_layers, planes, zones, adjacent)
 
 
@@ -552,7 +556,9 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=
     can get at most one phase ahead: at the next layer it moves towards the
     seam and waits).  At the end, the arms that finish away from their
     seams park only when their neighbours (which finish at the seams) are
-    done."""
+    done.  Returns the programs, or None when an arm with no work in a band
+    cannot retreat into it without coming nearer than the band to another
+    of its seams (:func:`_retreat`)."""
     names = [a.name for a in arms]
     if zones is None:
         zones = {}
@@ -673,7 +679,10 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=
                 if first is not None:
                     w_.travel_to(first.start)
                 elif p > 0 and not towards and w_.pos is not None:
-                    w_.travel_to(_retreat(w_.pos, planes[a.name], band, bounds[a.name]))
+                    target = _retreat(w_.pos, planes[a.name], band, bounds[a.name])
+                    if target is None:    # no point of this band clear of all its seams: not banded
+                        return None
+                    w_.travel_to(target)
                 if p > 0 and not towards and any(n in adjacent[a.name] for n in names):
                     # tell the neighbours (A10 with position, via the hub) that the approach is done
                     other = next(o for o in arms if o.name in adjacent[a.name])
@@ -751,7 +760,9 @@ def _arm_id(arms, name):
 
 def _retreat(pos, planes, band, t):
     """A point on the same side as ``pos`` just inside ``band`` (mm; band i
-    is [t[i], t[i+1]))."""
+    is [t[i], t[i+1])), moving away from the nearest seam; None if that
+    brings it nearer than the band to another of its seams (an arm between
+    two seams whose zones together are about as wide as its part)."""
     p = np.array(pos, dtype=float)
     if not planes:
         return tuple(p)
@@ -763,6 +774,9 @@ def _retreat(pos, planes, band, t):
     if d[j] >= want:
         return tuple(p)
     q = p + n * (want - d[j])
+    q = np.array([q[0], q[1], p[2]])
+    if _distance_to_planes(q[None], planes)[0].min() < t[band] - 1e-6:
+        return None
     return (float(q[0]), float(q[1]), float(p[2]))
 
 
