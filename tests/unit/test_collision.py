@@ -238,6 +238,28 @@ def test_nozzles_side_by_side_collide(cell, bodies):
         assert np.all(c <= nn + 1e-12)
 
 
+
+def test_firmware_check_says_what_a_pose_is_too_close_to(cell, bodies):
+    """The firmware's is_valid (driver trajectory) names the obstacle, the
+    clearance in mm and the closest links of a refused pose."""
+    from ambots.ros.firmware import CollisionCheck
+    k, u = cell.arms
+    check = CollisionCheck(k, cell, margin=0.005)
+    Qk = solve(cell, k, bodies["kinova"], [[-0.01, -0.01, 0.0002], [-0.08, -0.01, 0.0002], [0.0, 0.0, -0.01]])
+    qu = solve(cell, u, bodies["ur10"], [[0.08, -0.01, 0.0002]])[0]
+    assert check.explain(Qk[0]) == "clear" and check(Qk[:2]).all()         # the other arm not heard of yet
+    check.update("ur10", qu)
+    # nozzles 90 mm apart across the seam: the real-size wrists overlap
+    c = clearance_between(bodies["kinova"], Qk[:2], bodies["ur10"], np.stack([qu, qu]))
+    assert c[0] < 0 < 0.005 < c[1]
+    assert check(Qk[:2]).tolist() == [False, True]
+    why = check.explain(Qk[0])
+    assert why.startswith("ur10 %.2f mm (needs >= 5 mm): " % (c[0] * 1e3)) and " / " in why
+    assert check.explain(Qk[1]) == "clear"
+    # the nozzle 10 mm into the bed: the head's lowest body (5 mm short of the tip) 5 mm in
+    assert not check(Qk[2:]).any()
+    assert check.explain(Qk[2]).startswith("bed -5.00 mm (needs >= 0): nozzle")
+
 # ------------------------------------------------------------ boxes
 def sampled_box_clearance(a, b, r, lo, hi, n=4001):
     """Reference: signed distance of n points along the segment, computed
