@@ -270,7 +270,7 @@ def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=No
     else:
         zones = {pair: float(zone_mm) for pair in planes}
     home = home_positions_mm(cell, arms)
-    return _concurrent(arms, read, park, home, n_layers, planes, zones)
+    return _concurrent(arms, read, park, home, n_layers, planes, zones, _JointMoves(cell, arms))
 
 
 def seam_planes(parts):
@@ -406,7 +406,7 @@ def _two_colours(names, adjacent):
     return colour
 
 
-def _concurrent(arms, read, park, home, n_layers, planes, zones):
+def _concurrent(arms, read, park, home, n_layers, planes, zones, moves=None):
     names = [a.name for a in arms]
     adjacent = adjacent_arms(arms, read, planes, zones)
     colour = _two_colours(names, adjacent)
@@ -418,7 +418,7 @@ def _concurrent(arms, read, park, home, n_layers, planes, zones):
             return programs
     # no two colours, or an arm between two seams cannot stand clear of both
     # (their zones about as wide as its part): the scheduled timeline
-    return _timeline(arms, read, park, home, n_layers, planes, zones, adjacent)
+    return _timeline(arms, read, park, home, n_layers, planes, zones, adjacent, moves=moves)
 
 
 def _report_line(lines, is_wait, target):
@@ -854,6 +854,56 @@ def _split_at(seg, N, O, W, bands):
             for t0, t1 in zip(ts[:-1], ts[1:])]
 
 
+class _JointMoves:
+    """Where the nozzle goes (bed frame, mm) on the joint moves the firmware
+    makes between the park position (or home) and the part: a move to an
+    A7 target, and a travel whose start is not where the nozzle is, are
+    straight lines in joint space (:meth:`ambots.motion.MotionPlanner.
+    joint_move_to`, nozzle-down IK seeded with the joints it starts from),
+    which bulge off the straight line between their ends: a Panda coming
+    down from its park position passed 21 mm nearer the seam than both
+    ends.  :meth:`path` samples such a move; the timeline counts its points
+    below the printable height in the step's footprint."""
+
+    def __init__(self, cell, arms, samples=32):
+        from ambots.model import arm_kinematics
+        self.arm = {a.name: a for a in arms}
+        self.kin = {a.name: arm_kinematics(a) for a in arms}
+        self.bed = np.asarray(cell.bed.pose, dtype=float)
+        self.top = cell.bed.max_height * 1000.0
+        self.samples = int(samples)
+        self._cache = {}
+
+    def _ik(self, name, p_mm, seed):
+        from ambots.workspace import down_in_base, world_to_base
+        arm = self.arm[name]
+        world = (np.asarray(p_mm, dtype=float) / 1000.0) @ self.bed[:3, :3].T + self.bed[:3, 3]
+        Q, ok, _ = self.kin[name].ik_batch(world_to_base(arm, world[None]), np.asarray(seed, dtype=float),
+                                           down_in_base(arm))
+        return Q[0] if ok[0] else None
+
+    def path(self, name, a_mm, b_mm):
+        """Nozzle positions (K, 3), bed mm, on the joint move from nozzle-down
+        at ``a_mm`` (None: the arm's home pose) to nozzle-down at ``b_mm``,
+        only those at most at the printable height; empty if either end is
+        out of reach (the firmware reports that itself)."""
+        key = (name, None if a_mm is None else tuple(np.round(a_mm, 6)), tuple(np.round(b_mm, 6)))
+        if key in self._cache:
+            return self._cache[key]
+        home = np.asarray(self.arm[name].profile.home, dtype=float)
+        qa = home if a_mm is None else self._ik(name, a_mm, home)
+        qb = None if qa is None else self._ik(name, b_mm, qa)
+        out = np.zeros((0, 3))
+        if qb is not None:
+            u = np.linspace(0.0, 1.0, self.samples)[:, None]
+            T = self.arm[name].base_pose @ self.kin[name].fk_batch((1.0 - u) * qa + u * qb)
+            inv = np.linalg.inv(self.bed)
+            P = (T[:, :3, 3] @ inv[:3, :3].T + inv[:3, 3]) * 1000.0
+            out = P[P[:, 2] <= self.top]
+        self._cache[key] = out
+        return out
+
+
 @dataclass
 class _Act:
     """One step of an arm's schedule: ``kind`` "chunk" (print ``segs``),
@@ -885,7 +935,8 @@ def _path_time(pos, segs):
     return t
 
 
-def _timeline(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4, priority_only=False):
+def _timeline(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4, priority_only=False,
+              moves=None):
     """Any adjacency (an odd cycle of adjacent arms: three or more around a point).
 
     Each arm's layer is cut into *chunks*: pieces of its extrusions grouped
@@ -898,9 +949,12 @@ def _timeline(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4
     two distances to their plane over the chunk and over what the other arm
     is doing (printing a chunk, or waiting at the end of one) is at least the
     pair's zone; chunks nearest a seam first, the nearest to the nozzle among
-    equals.  A layer starts when the adjacent arms have finished the previous
-    one.  An arm with nothing to do that stands in another's way (or when
-    nobody can go on) retreats to its park position.  The schedule is made
+    equals.  A step's footprint covers the joint moves to and from the park
+    position (or from home) too, as the firmware makes them (``moves``,
+    :class:`_JointMoves`: their points below the printable height).  A
+    layer starts when the adjacent arms have finished the previous one.  An
+    arm with nothing to do that stands in another's way (or when nobody can
+    go on) retreats to its park position.  The schedule is made
     twice, once with the arms' priorities (an arm leaves alone what an
     adjacent arm earlier in the cell's list, later on odd layers, still has
     to print within the zone, so that arm sweeps away from their seam and
@@ -923,6 +977,12 @@ def _timeline(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4
 
     def dist(n, pts):
         return np.asarray(pts, dtype=float).reshape(-1, 3) @ N[n].T - O[n]
+
+    def path_d(n, a, b):
+        """Closest distance to each adjacent arm's plane on arm n's joint move
+        from ``a`` (None: home) to ``b`` below the printable height (inf: none)."""
+        P = moves.path(n, a, b) if moves is not None and len(N[n]) else np.zeros((0, 3))
+        return dist(n, P).min(axis=0) if len(P) else np.full(len(N[n]), np.inf)
 
     # a pair whose parts never get a zone apart anywhere (a strip along a
     # seam) can never print at once: where an arm is across that plane makes
@@ -996,7 +1056,11 @@ def _timeline(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4
         def to_park(n, t, kind):
             p = np.asarray(park[n], dtype=float)
             dur = float(np.linalg.norm(p - pos[n])) / _JOINT_MM_S + _JOINT_S
-            start(n, _Act(kind, layer_of[n], t, t + dur, pos_d[n].copy()), p, True)
+            fp = pos_d[n].copy()
+            if not parked[n]:                     # the joint move up there (lifted 10 mm from the part)
+                fp = np.minimum(fp, path_d(n, None, p) if first[n] else
+                                path_d(n, pos[n] + (0.0, 0.0, 10.0), p))
+            start(n, _Act(kind, layer_of[n], t, t + dur, fp), p, True)
 
         def layer_ready(n, layer, t):
             """Every adjacent arm has printed ``layer``, by time t."""
@@ -1010,6 +1074,10 @@ def _timeline(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4
             for ci in left[n]:
                 ps, dmin, level = chunks[n, layer_of[n]][ci]
                 fp = np.minimum(dmin, pos_d[n])
+                if first[n] or parked[n]:         # the joint move there, from home or the park position
+                    p = np.asarray(_order_runs(ps, None)[0].start, dtype=float)
+                    fp = np.minimum(fp, path_d(n, None, p) if first[n] else
+                                    path_d(n, park[n], p + (0.0, 0.0, 10.0)))
                 near = min(float(np.linalg.norm(np.subtract(ps[0].start, pos[n]))),
                            float(np.linalg.norm(np.subtract(ps[-1].end, pos[n]))))
                 out.append((ci, fp, clash(n, fp, t), (level, near)))

@@ -446,3 +446,29 @@ def test_sequential_parks_the_waiting_arms_clear_of_the_bed():
     sx, sy = c.bed.size[0] * 500.0, c.bed.size[1] * 500.0
     for m in first:
         assert abs(m.x) > sx or abs(m.y) > sy
+
+
+def test_the_timeline_counts_the_joint_moves_to_and_from_the_park_position():
+    """The firmware comes down from the park position in one joint move
+    (straight in joint space): the nozzle bulges off the straight line, here
+    (the Panda of the three-arm cell, towards its seam with the UR10) about
+    20 mm nearer the seam than either end.  The timeline's estimate of the
+    move (``_JointMoves``, counted in the step's footprint) follows the
+    firmware planner's own move."""
+    from ambots.coordinate import _JointMoves
+    from ambots.motion import MotionPlanner
+    c = load_cell("config/cells/three_arms.yaml")
+    panda = c.arm("panda")
+    park = park_positions_mm(c, c.arms)["panda"]
+    target = np.array([-104.6, -57.5, 10.2])                  # 10 mm over a chunk's start near the seam
+    planner = MotionPlanner(panda, c)
+    q_park = planner.kin.ik(planner.bed_mm_to_base(park[None])[0], np.asarray(panda.profile.home), planner.down)
+    tip = planner.world_to_bed_mm(planner.joint_move_to(planner.bed_mm_to_base(target[None])[0], q_park).tip)
+    low = tip[tip[:, 2] <= c.bed.max_height * 1000.0]
+    est = _JointMoves(c, c.arms).path("panda", park, target)
+    assert len(low) and len(est) and np.all(est[:, 2] <= c.bed.max_height * 1000.0)
+    assert np.linalg.norm(low[:, None] - est[None], axis=2).min(axis=1).max() < 6.0     # 32 samples
+    towards_ur10 = np.array([0.88, 0.47, 0.0]) / np.hypot(0.88, 0.47)
+    ends = max(park @ towards_ur10, target @ towards_ur10)
+    assert (low @ towards_ur10).max() > ends + 15.0
+    assert abs((est @ towards_ur10).max() - (low @ towards_ur10).max()) < 1.0
