@@ -1,15 +1,24 @@
 """Capsule collision model of the arms: clearance between two arms, to the
 print bed and to the part printed so far.
 
-Every link of our arm models carries a cylinder as both visual and collision
-geometry (``ambots_cylinder`` in ``urdf/common.xacro``).  Each collision
-cylinder becomes a *capsule*: a segment on the cylinder's axis plus its
-radius.  The segment's endpoints are inset by ``min(radius, length / 2)`` from
-the flat ends, so the capsule never reaches past them (the nozzle link's
-cylinder stops 5 mm short of the tip, and so does its capsule); it bulges out
-sideways only where the rounded caps meet the rim, i.e. it lies inside the
-cylinder except for a cylinder shorter than its diameter, which becomes a
-ball of its radius.
+Every link of our arm models carries cylinders (and spheres) as both visual
+and collision geometry (``urdf/common.xacro``): the model's own link
+cylinders, the arm profile's ``bodies:`` (joint housings and link tubes of
+the real arm's size, :class:`ambots.config.Capsule`) and, on the ``nozzle``
+link, the print head (``tool.head:``), so RViz shows what is checked.  Each
+collision cylinder becomes a *capsule*: a segment on the cylinder's axis
+plus its radius.  The segment's endpoints are inset by
+``min(radius, length / 2)`` from the flat ends, so the capsule never reaches
+past them; it bulges out sideways only where the rounded caps meet the rim,
+i.e. it lies inside the cylinder except for a cylinder shorter than its
+diameter, which becomes a ball of its radius.  A profile body (a capsule) is
+drawn as the cylinder of length ``|b - a| + 2 r`` around its segment, so it
+comes back exactly.  A sphere is a capsule of zero length.  A capsule lying
+wholly inside another of the same link (a model cylinder inside the
+profile's envelope) is dropped: it never decides a clearance.  The head's
+bodies stop 5 mm short of the tip (the profiles; at least
+:data:`ambots.config.HEAD_TIP_GAP`), so a nozzle printing on the part is no
+contact.
 
 API (metres, radians; N configurations, C capsules of one arm):
 
@@ -127,7 +136,24 @@ def _parse_capsules(urdf_xml, chain):
             r.append(cr)
     if not names:
         raise KinematicsError("the URDF has no collision geometry on the chain %s -> %s" % (chain.base, chain.tip))
-    return np.array(names), np.array(idx), np.array(a), np.array(b), np.array(r)
+    names, idx, a, b, r = np.array(names), np.array(idx), np.array(a), np.array(b), np.array(r)
+    keep = ~_inside_another(idx, a, b, r)
+    return names[keep], idx[keep], a[keep], b[keep], r[keep]
+
+
+def _inside_another(idx, a, b, r):
+    """Bool (C,): capsules (segments a-b, radii r, frames idx) lying wholly
+    inside another capsule of the same link: both segment ends within the
+    other's radius less their own (the distance to a segment is convex along
+    a segment, so every point of the capsule is then inside).  Of identical
+    capsules the first is kept.  Such a capsule never decides a clearance."""
+    d = b - a
+    ends = [_point_segment(p[:, None], a[None], d[None], _dot(d, d)[None]) for p in (a, b)]   # (C, C) each
+    within = (idx[:, None] == idx[None, :]) & (np.maximum(*ends) + r[:, None] <= r[None, :] + 1e-12)
+    np.fill_diagonal(within, False)
+    first = np.arange(len(r))[:, None] < np.arange(len(r))[None, :]
+    within &= ~(within.T & first)             # of two identical capsules, the first stays
+    return within.any(axis=1)
 
 
 class ArmBody:
@@ -334,8 +360,9 @@ def part_clearance(body, Q, box_min, box_max, skip=()):
     """Clearance (N,), m, of an arm at joint vectors ``Q`` (N, n) to the part
     printed so far, approximated by the world axis-aligned box ``box_min`` ..
     ``box_max`` ((3,) or (N, 3), m; e.g. :meth:`ambots.deposit.Deposit.bounds`).
-    The nozzle link is checked too: its capsule stops 5 mm above the tip, so a
-    nozzle printing on the part's top face has about +5 mm clearance there.
+    The nozzle link is checked too: the head's bodies stop 5 mm short of the
+    tip (the profiles' ``tool.head``), so a nozzle printing on the part's top
+    face has about +5 mm clearance there.
     ``skip``: link names not checked."""
     A, B, r = body.capsules(Q)
     return box_clearance(A, B, r, box_min, box_max, body.mask(skip))
@@ -358,8 +385,9 @@ class SeamZone:
     ``any_mm`` counts each arm's own forearm, shoulder and base trailing back
     towards its base (they are within the band of a nozzle on the bed), so it
     is about the arms' reach, not a usable zone; ``facing_mm`` is the one to
-    use.  Default cell, 10 mm margin: facing 90.1 mm (Kinova 35.1 + UR10 45.0,
-    their wrists stacked above the nozzle), any direction 1979 mm."""
+    use.  Default cell, 10 mm margin: facing 154.3 mm (Kinova 68.3, its wrist
+    housing around J5; UR10 76.0, its wrist: both stacked above the nozzle),
+    any direction 2021 mm."""
     any_mm: float
     facing_mm: float
     margin_mm: float
@@ -531,7 +559,7 @@ def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n
     the nozzle no farther from the plane between them than the arm's own
     base (farther, the fixed base stays between the nozzle and the plane).
     Two arms never that near each other (far apart in a row) get a zone of
-    ``margin_mm``.  For the default cell this gives the same 90.1 mm as
+    ``margin_mm``.  For the default cell this gives the same 154.3 mm as
     :func:`seam_zone`.
 
     ``parts``: the :class:`~ambots.partition.Part` of each arm of a job

@@ -19,14 +19,20 @@ import yaml
 from ambots import data_path
 from ambots.errors import ConfigError
 
-__all__ = ["ArmProfile", "ArmInstance", "Bed", "Cell", "load_arm_profile", "load_cell",
-           "pose_matrix", "resolve_path", "DRIVER_NUMBERS", "DRIVER_NAMES"]
+__all__ = ["ArmProfile", "ArmInstance", "Bed", "Cell", "Capsule", "load_arm_profile", "load_cell",
+           "pose_matrix", "resolve_path", "DRIVER_NUMBERS", "DRIVER_NAMES", "BODY_KINDS", "HEAD_TIP_GAP"]
 
 #: optional numbers (> 0) of a profile's ``driver:`` section: s between trajectory points the
 #: controller requires, rad/s it accepts on every joint (see :mod:`ambots.trajectory`)
 DRIVER_NUMBERS = ("sample_period", "max_joint_speed")
 #: optional names of a profile's ``driver:`` section (topics relative to the arm's namespace)
 DRIVER_NAMES = ("joint_states_topic", "extruder_topic", "extruder_joint")
+#: the kinds of collision body a profile's ``bodies:`` and ``tool.head:`` entries describe
+#: (see :func:`_read_body`)
+BODY_KINDS = ("tube", "housing", "ball")
+#: every print head body stays at least this far behind the nozzle tip (m), so that a
+#: nozzle printing on the part does not touch it (the profiles keep 5 mm)
+HEAD_TIP_GAP = 0.002
 
 
 def resolve_path(path, relative_to=None):
@@ -67,6 +73,8 @@ class _Reader:
             raise ConfigError(path, prefix or None, "expected a mapping, got %s" % type(data).__name__)
 
     def _name(self, key):
+        if isinstance(key, int):                    # an item of a list read as {index: item}
+            return "%s[%d]" % (self.prefix, key)
         return "%s.%s" % (self.prefix, key) if self.prefix else key
 
     def get(self, key, default=KeyError):
@@ -107,6 +115,13 @@ class _Reader:
         if not isinstance(v, list) or not v:
             raise ConfigError(self.path, self._name(key), "expected a non-empty list")
         return [_Reader(self.path, item, "%s[%d]" % (self._name(key), i)) for i, item in enumerate(v)]
+
+    def only(self, allowed):
+        """Refuse keys other than ``allowed`` (a typo would silently drop a body)."""
+        unknown = sorted(str(k) for k in self.data if k not in allowed)
+        if unknown:
+            raise ConfigError(self.path, self._name(unknown[0]), "unknown field (expected one of: %s)"
+                              % ", ".join(allowed))
 
 
 class _Loader(yaml.SafeLoader):
@@ -155,6 +170,93 @@ class JointLimit:
 
 
 @dataclass(frozen=True)
+class Capsule:
+    """One collision body of a profile: the points within ``radius`` of the
+    segment ``a`` - ``b`` (a ball when they coincide), in its link's frame (m).
+    The model draws it as the cylinder of length ``|b - a| + 2 radius`` around
+    the segment, which :class:`ambots.collision.ArmBody` turns back into it."""
+    name: str
+    a: Tuple[float, float, float]
+    b: Tuple[float, float, float]
+    radius: float
+
+
+def _read_body(r):
+    """A :class:`Capsule` from one ``bodies:`` or ``tool.head:`` entry, one of
+
+    * ``{tube: [[x, y, z], [x, y, z]], radius: r}``: within r of the segment
+      (a link tube between two joint centres);
+    * ``{housing: [x, y, z], axis: [x, y, z], reach: h, radius: r}``: a joint
+      housing, coaxial with ``axis`` through the centre: the segment from
+      ``h`` before to ``h`` after the centre along the axis, plus r (so it
+      covers a cylinder of radius r reaching h beyond the centre both ways);
+    * ``{ball: [x, y, z], radius: r}``;
+
+    each with an optional ``name``.  Metres, in the link's own frame."""
+    kinds = [k for k in BODY_KINDS if k in r.data]
+    if len(kinds) != 1:
+        raise ConfigError(r.path, r.prefix, "expected exactly one of %s, got %s"
+                          % (", ".join(BODY_KINDS), ", ".join(kinds) or "none"))
+    kind = kinds[0]
+    r.only({"tube": ("tube", "radius", "name"), "housing": ("housing", "axis", "reach", "radius", "name"),
+            "ball": ("ball", "radius", "name")}[kind])
+    name = r.str("name", kind)
+    radius = r.num("radius", positive=True)
+    a, b = {"ball": lambda: (r.vec("ball", 3),) * 2, "tube": lambda: _tube(r), "housing": lambda: _housing(r)}[kind]()
+    return Capsule(name, a, b, radius)
+
+
+def _tube(r):
+    """The two ends of a ``tube:`` entry."""
+    ends = r.get("tube")
+    if not isinstance(ends, list) or len(ends) != 2:
+        raise ConfigError(r.path, r.prefix + ".tube", "expected two points [[x, y, z], [x, y, z]], got %r" % (ends,))
+    points = _Reader(r.path, dict(enumerate(ends)), r.prefix + ".tube")
+    return points.vec(0, 3), points.vec(1, 3)
+
+
+def _housing(r):
+    """The segment of a ``housing:`` entry: ``reach`` before and after its
+    centre along its axis."""
+    centre, axis = np.array(r.vec("housing", 3)), np.array(r.vec("axis", 3))
+    reach = r.num("reach")
+    if reach < 0:
+        raise ConfigError(r.path, r.prefix + ".reach", "must be >= 0, got %r" % (reach,))
+    norm = float(np.linalg.norm(axis))
+    if not norm > 1e-9:
+        raise ConfigError(r.path, r.prefix + ".axis", "must not be zero, got %r" % (list(axis),))
+    return tuple(tuple(float(x) for x in centre + s * reach * axis / norm) for s in (-1.0, 1.0))
+
+
+def _read_bodies(r):
+    """{link: (Capsule, ...)} from the optional ``bodies:`` mapping of link
+    names (without prefix) to lists of bodies."""
+    if "bodies" not in r.data or r.data["bodies"] is None:
+        return {}
+    bodies = r.sub("bodies")
+    out = {}
+    for link in bodies.data:
+        if not isinstance(link, str) or not link:
+            raise ConfigError(r.path, "bodies", "link names must be non-empty strings, got %r" % (link,))
+        out[link] = tuple(_read_body(b) for b in bodies.items(link))
+    return out
+
+
+def _read_head(tool):
+    """The print head's bodies (``tool.head:``, nozzle frame: the tip at the
+    origin, z out of the tip), each kept :data:`HEAD_TIP_GAP` behind the tip."""
+    head = tuple(_read_body(b) for b in tool.items("head"))
+    for i, c in enumerate(head):
+        front = max(c.a[2], c.b[2]) + c.radius
+        if front > -HEAD_TIP_GAP:
+            raise ConfigError(tool.path, "%s.head[%d]" % (tool.prefix, i),
+                              "%r reaches %.1f mm from the tip (z + radius = %.4f m); the head must stay at "
+                              "least %.0f mm behind it (z < 0 is behind the tip), or printing on the part "
+                              "would be contact" % (c.name, -front * 1000.0, front, HEAD_TIP_GAP * 1000.0))
+    return head
+
+
+@dataclass(frozen=True)
 class ArmProfile:
     """What an arm is (one ``config/arms/<arm>.yaml``)."""
     path: str
@@ -173,6 +275,10 @@ class ArmProfile:
     driver_joint_names: Tuple[str, ...]
     driver_command_topic: str
     driver_options: dict = field(default_factory=dict)
+    #: {link: (Capsule, ...)}: collision bodies besides the model's own (joint housings, link tubes)
+    bodies: dict = field(default_factory=dict)
+    #: the print head's bodies on the ``nozzle`` link (nozzle frame)
+    head: Tuple[Capsule, ...] = ()
 
     @property
     def joint_names(self):
@@ -206,6 +312,7 @@ def load_arm_profile(path):
         if not jl.lower <= q <= jl.upper:
             raise ConfigError(path, "home", "%s = %g is outside its limits [%g, %g]" % (jl.name, q, jl.lower, jl.upper))
     tool = r.sub("tool")
+    tool.only(("xyz", "rpy", "head"))
     driver = r.sub("driver")
     names = driver.get("joint_names")
     if not isinstance(names, list) or len(names) != n or not all(isinstance(s, str) for s in names):
@@ -232,7 +339,7 @@ def load_arm_profile(path):
         reach=r.num("reach", positive=True), joints=tuple(joints), home=home,
         velocity_scaling=scaling, colour=r.vec("filament_colour", 4),
         driver_joint_names=tuple(names), driver_command_topic=driver.str("command_topic"),
-        driver_options=options)
+        driver_options=options, bodies=_read_bodies(r), head=_read_head(tool))
 
 
 @dataclass(frozen=True)

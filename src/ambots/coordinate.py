@@ -270,7 +270,7 @@ def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=No
     else:
         zones = {pair: float(zone_mm) for pair in planes}
     home = home_positions_mm(cell, arms)
-    return _concurrent(arms, read, park, home, n_layers, planes, zones)
+    return _concurrent(arms, read, park, home, n_layers, planes, zones, _JointMoves(cell, arms))
 
 
 def seam_planes(parts):
@@ -406,15 +406,19 @@ def _two_colours(names, adjacent):
     return colour
 
 
-def _concurrent(arms, read, park, home, n_layers, planes, zones):
+def _concurrent(arms, read, park, home, n_layers, planes, zones, moves=None):
     names = [a.name for a in arms]
     adjacent = adjacent_arms(arms, read, planes, zones)
     colour = _two_colours(names, adjacent)
     if colour is not None:
         near = {a: [planes[a, b] for b in names if b in adjacent[a]] for a in names}
         zone = max([zones[a, b] for a in names for b in adjacent[a]] or [0.0])
-        return _banded(arms, read, park, n_layers, zone, near, colour, adjacent, home, zones)
-    return _timeline(arms, read, park, home, n_layers, planes, zones, adjacent)
+        programs = _banded(arms, read, park, n_layers, zone, near, colour, adjacent, home, zones)
+        if programs is not None:
+            return programs
+    # no two colours, or an arm between two seams cannot stand clear of both
+    # (their zones about as wide as its part): the scheduled timeline
+    return _timeline(arms, read, park, home, n_layers, planes, zones, adjacent, moves=moves)
 
 
 def _report_line(lines, is_wait, target):
@@ -552,7 +556,9 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=
     can get at most one phase ahead: at the next layer it moves towards the
     seam and waits).  At the end, the arms that finish away from their
     seams park only when their neighbours (which finish at the seams) are
-    done."""
+    done.  Returns the programs, or None when an arm with no work in a band
+    cannot retreat into it without coming nearer than the band to another
+    of its seams (:func:`_retreat`)."""
     names = [a.name for a in arms]
     if zones is None:
         zones = {}
@@ -673,7 +679,10 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=
                 if first is not None:
                     w_.travel_to(first.start)
                 elif p > 0 and not towards and w_.pos is not None:
-                    w_.travel_to(_retreat(w_.pos, planes[a.name], band, bounds[a.name]))
+                    target = _retreat(w_.pos, planes[a.name], band, bounds[a.name])
+                    if target is None:    # no point of this band clear of all its seams: not banded
+                        return None
+                    w_.travel_to(target)
                 if p > 0 and not towards and any(n in adjacent[a.name] for n in names):
                     # tell the neighbours (A10 with position, via the hub) that the approach is done
                     other = next(o for o in arms if o.name in adjacent[a.name])
@@ -751,7 +760,9 @@ def _arm_id(arms, name):
 
 def _retreat(pos, planes, band, t):
     """A point on the same side as ``pos`` just inside ``band`` (mm; band i
-    is [t[i], t[i+1]))."""
+    is [t[i], t[i+1])), moving away from the nearest seam; None if that
+    brings it nearer than the band to another of its seams (an arm between
+    two seams whose zones together are about as wide as its part)."""
     p = np.array(pos, dtype=float)
     if not planes:
         return tuple(p)
@@ -763,6 +774,9 @@ def _retreat(pos, planes, band, t):
     if d[j] >= want:
         return tuple(p)
     q = p + n * (want - d[j])
+    q = np.array([q[0], q[1], p[2]])
+    if _distance_to_planes(q[None], planes)[0].min() < t[band] - 1e-6:
+        return None
     return (float(q[0]), float(q[1]), float(p[2]))
 
 
@@ -840,6 +854,56 @@ def _split_at(seg, N, O, W, bands):
             for t0, t1 in zip(ts[:-1], ts[1:])]
 
 
+class _JointMoves:
+    """Where the nozzle goes (bed frame, mm) on the joint moves the firmware
+    makes between the park position (or home) and the part: a move to an
+    A7 target, and a travel whose start is not where the nozzle is, are
+    straight lines in joint space (:meth:`ambots.motion.MotionPlanner.
+    joint_move_to`, nozzle-down IK seeded with the joints it starts from),
+    which bulge off the straight line between their ends: a Panda coming
+    down from its park position passed 21 mm nearer the seam than both
+    ends.  :meth:`path` samples such a move; the timeline counts its points
+    below the printable height in the step's footprint."""
+
+    def __init__(self, cell, arms, samples=32):
+        from ambots.model import arm_kinematics
+        self.arm = {a.name: a for a in arms}
+        self.kin = {a.name: arm_kinematics(a) for a in arms}
+        self.bed = np.asarray(cell.bed.pose, dtype=float)
+        self.top = cell.bed.max_height * 1000.0
+        self.samples = int(samples)
+        self._cache = {}
+
+    def _ik(self, name, p_mm, seed):
+        from ambots.workspace import down_in_base, world_to_base
+        arm = self.arm[name]
+        world = (np.asarray(p_mm, dtype=float) / 1000.0) @ self.bed[:3, :3].T + self.bed[:3, 3]
+        Q, ok, _ = self.kin[name].ik_batch(world_to_base(arm, world[None]), np.asarray(seed, dtype=float),
+                                           down_in_base(arm))
+        return Q[0] if ok[0] else None
+
+    def path(self, name, a_mm, b_mm):
+        """Nozzle positions (K, 3), bed mm, on the joint move from nozzle-down
+        at ``a_mm`` (None: the arm's home pose) to nozzle-down at ``b_mm``,
+        only those at most at the printable height; empty if either end is
+        out of reach (the firmware reports that itself)."""
+        key = (name, None if a_mm is None else tuple(np.round(a_mm, 6)), tuple(np.round(b_mm, 6)))
+        if key in self._cache:
+            return self._cache[key]
+        home = np.asarray(self.arm[name].profile.home, dtype=float)
+        qa = home if a_mm is None else self._ik(name, a_mm, home)
+        qb = None if qa is None else self._ik(name, b_mm, qa)
+        out = np.zeros((0, 3))
+        if qb is not None:
+            u = np.linspace(0.0, 1.0, self.samples)[:, None]
+            T = self.arm[name].base_pose @ self.kin[name].fk_batch((1.0 - u) * qa + u * qb)
+            inv = np.linalg.inv(self.bed)
+            P = (T[:, :3, 3] @ inv[:3, :3].T + inv[:3, 3]) * 1000.0
+            out = P[P[:, 2] <= self.top]
+        self._cache[key] = out
+        return out
+
+
 @dataclass
 class _Act:
     """One step of an arm's schedule: ``kind`` "chunk" (print ``segs``),
@@ -871,7 +935,8 @@ def _path_time(pos, segs):
     return t
 
 
-def _timeline(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4, priority_only=False):
+def _timeline(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4, priority_only=False,
+              moves=None):
     """Any adjacency (an odd cycle of adjacent arms: three or more around a point).
 
     Each arm's layer is cut into *chunks*: pieces of its extrusions grouped
@@ -884,9 +949,12 @@ def _timeline(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4
     two distances to their plane over the chunk and over what the other arm
     is doing (printing a chunk, or waiting at the end of one) is at least the
     pair's zone; chunks nearest a seam first, the nearest to the nozzle among
-    equals.  A layer starts when the adjacent arms have finished the previous
-    one.  An arm with nothing to do that stands in another's way (or when
-    nobody can go on) retreats to its park position.  The schedule is made
+    equals.  A step's footprint covers the joint moves to and from the park
+    position (or from home) too, as the firmware makes them (``moves``,
+    :class:`_JointMoves`: their points below the printable height).  A
+    layer starts when the adjacent arms have finished the previous one.  An
+    arm with nothing to do that stands in another's way (or when nobody can
+    go on) retreats to its park position.  The schedule is made
     twice, once with the arms' priorities (an arm leaves alone what an
     adjacent arm earlier in the cell's list, later on odd layers, still has
     to print within the zone, so that arm sweeps away from their seam and
@@ -909,6 +977,12 @@ def _timeline(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4
 
     def dist(n, pts):
         return np.asarray(pts, dtype=float).reshape(-1, 3) @ N[n].T - O[n]
+
+    def path_d(n, a, b):
+        """Closest distance to each adjacent arm's plane on arm n's joint move
+        from ``a`` (None: home) to ``b`` below the printable height (inf: none)."""
+        P = moves.path(n, a, b) if moves is not None and len(N[n]) else np.zeros((0, 3))
+        return dist(n, P).min(axis=0) if len(P) else np.full(len(N[n]), np.inf)
 
     # a pair whose parts never get a zone apart anywhere (a strip along a
     # seam) can never print at once: where an arm is across that plane makes
@@ -982,7 +1056,11 @@ def _timeline(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4
         def to_park(n, t, kind):
             p = np.asarray(park[n], dtype=float)
             dur = float(np.linalg.norm(p - pos[n])) / _JOINT_MM_S + _JOINT_S
-            start(n, _Act(kind, layer_of[n], t, t + dur, pos_d[n].copy()), p, True)
+            fp = pos_d[n].copy()
+            if not parked[n]:                     # the joint move up there (lifted 10 mm from the part)
+                fp = np.minimum(fp, path_d(n, None, p) if first[n] else
+                                path_d(n, pos[n] + (0.0, 0.0, 10.0), p))
+            start(n, _Act(kind, layer_of[n], t, t + dur, fp), p, True)
 
         def layer_ready(n, layer, t):
             """Every adjacent arm has printed ``layer``, by time t."""
@@ -996,6 +1074,10 @@ def _timeline(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4
             for ci in left[n]:
                 ps, dmin, level = chunks[n, layer_of[n]][ci]
                 fp = np.minimum(dmin, pos_d[n])
+                if first[n] or parked[n]:         # the joint move there, from home or the park position
+                    p = np.asarray(_order_runs(ps, None)[0].start, dtype=float)
+                    fp = np.minimum(fp, path_d(n, None, p) if first[n] else
+                                    path_d(n, park[n], p + (0.0, 0.0, 10.0)))
                 near = min(float(np.linalg.norm(np.subtract(ps[0].start, pos[n]))),
                            float(np.linalg.norm(np.subtract(ps[-1].end, pos[n]))))
                 out.append((ci, fp, clash(n, fp, t), (level, near)))

@@ -5,7 +5,7 @@ from a cell config -- the N-arm counterpart of a hand-written dual-arm xacro.
 import xml.etree.ElementTree as ET
 
 from ambots.config import ArmInstance, ArmProfile, Cell
-from ambots.errors import KinematicsError
+from ambots.errors import ConfigError, KinematicsError
 
 __all__ = ["arm_urdf", "cell_urdf", "arm_kinematics"]
 
@@ -18,7 +18,24 @@ def arm_urdf(profile: ArmProfile, prefix=""):
         doc = xacro.process_file(profile.model, mappings={"prefix": prefix, "profile": profile.path})
     except Exception as exc:  # xacro raises plain Exceptions of several kinds
         raise KinematicsError("%s: xacro failed: %s" % (profile.model, exc)) from None
+    _check_bodies_drawn(profile, doc, prefix)
     return doc.toxml()
+
+
+def _check_bodies_drawn(profile, doc, prefix):
+    """Every link named in the profile's ``bodies:`` must be a link of the
+    model that draws them (its xacro calls ``ambots_link_bodies`` in it): a
+    misspelt link name would otherwise leave the bodies out unnoticed."""
+    links = {e.getAttribute("name")[len(prefix):]: e for e in doc.getElementsByTagName("link")}
+    for link, bodies in profile.bodies.items():
+        if link not in links:
+            raise ConfigError(profile.path, "bodies.%s" % link, "the model %s has no link %r (its links: %s)"
+                              % (profile.model, link, ", ".join(sorted(links))))
+        drawn = len(links[link].getElementsByTagName("collision"))
+        if drawn < len(bodies):
+            raise ConfigError(profile.path, "bodies.%s" % link, "the model %s draws %d collision bodies on this "
+                              "link, fewer than the profile's %d (does its xacro call ambots_link_bodies there?)"
+                              % (profile.model, drawn, len(bodies)))
 
 
 def _fmt(v):

@@ -234,7 +234,9 @@ class MotionPlanner:
         If it has an attribute ``static`` (the same check without the
         other arms), a move that only the other arms' current poses block
         becomes a wait in place of ``blocked_wait_s`` s (``Block.blocked``)
-        after which the runner plans it again, instead of an error.
+        after which the runner plans it again, instead of an error.  If
+        it has ``explain(q)`` (what ``q`` is too close to), a start or goal
+        in collision says so in ``Block.blocked`` and in the error.
     timing : the timing law applied to every block the planner returns
         (default and only law in use: :class:`ambots.trajectory.SplineTiming`
         for this planner -- the programmed feedrates as the wanted nozzle
@@ -464,12 +466,13 @@ class MotionPlanner:
             try:
                 path = planner.plan(q0, q1, timeout=self.plan_timeout)
             except PlanningError as exc:
+                why = self._why(exc)
                 if self._clear_without_others(q0, q1):
                     # only other arms, where they are now, are in the way: they move on
                     block = self.dwell(q0, self.blocked_wait_s, line, layer)
-                    block.blocked = str(exc)
+                    block.blocked = why
                     return block
-                return self._still(q0, line, layer, MotionError(line, "no collision-free path: %s" % exc))
+                return self._still(q0, line, layer, MotionError(line, "no collision-free path: %s" % why))
             how = "joint" if len(path) == 2 else "ompl"
         path = interpolate(path, 0.05)
         t = np.asarray(time_parametrize(path, self.vmax, self.amax), dtype=float)
@@ -478,6 +481,16 @@ class MotionPlanner:
         L = float(np.linalg.norm(np.diff(tip, axis=0), axis=1).sum())
         return Block(np.asarray(t, dtype=float), path, tip, np.full(K, line), np.full(K, layer),
                      np.zeros(K, dtype=bool), np.zeros(K), travel_m=L, planned=how)
+
+    def _why(self, exc):
+        """The planner's message, and for a start or goal in collision what it
+        is too close to (``is_valid.explain``, when it has one: obstacles,
+        clearances in mm, links)."""
+        explain = getattr(self.is_valid, "explain", None)
+        q = {"start_invalid": exc.q_start, "goal_invalid": exc.q_goal}.get(exc.reason)
+        if explain is None or q is None:
+            return str(exc)
+        return "%s: %s" % (exc, explain(q))
 
     def _clear_without_others(self, q0, q1):
         """Whether q0 -> q1 could be planned if the other arms were not

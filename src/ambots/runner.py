@@ -194,6 +194,8 @@ class ArmRunner:
     def _begin(self, block, t0):
         """``block`` starts at simulated time ``t0``."""
         self.block, self.block_t0, self.k = block, float(t0), 0
+        if block is not None and self.stats.first_motion_s is None:
+            self.stats.first_motion_s = float(t0)     # any block: a program's moves, a MoveTo, an A7
         if self.on_motion is not None and block is not None:
             self.on_motion(block, self.block_t0, 0)
 
@@ -499,8 +501,6 @@ class ArmRunner:
         self.stats.plans[b.planned] = self.stats.plans.get(b.planned, 0) + 1
         self.stats.max_path_error_mm = max(self.stats.max_path_error_mm, b.max_deviation_mm)
         self._begin(b, self.clock)
-        if self.stats.first_motion_s is None:
-            self.stats.first_motion_s = self.clock
         return True
 
     def prefetch(self, max_items=4):

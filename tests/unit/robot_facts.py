@@ -49,3 +49,38 @@ PANDA_LIMITS = [(-2.8973, 2.8973), (-1.7628, 1.7628), (-2.8973, 2.8973), (-3.071
                 (-2.8973, 2.8973), (-0.0175, 3.7525), (-2.8973, 2.8973)]
 PANDA_MAX_SPEED = [2.1750, 2.1750, 2.1750, 2.1750, 2.6100, 2.6100, 2.6100]
 PANDA_REACH = 0.855
+
+# ---------------------------------------------------------------- body envelopes
+# ROBOT_FACTS "Body envelopes" (the manufacturers' collision meshes, posed by their own
+# kinematics), mm -> m.  Per table row: the radius about the link's axis (the line between the
+# two joint centres it connects; the largest value of a range, along the whole link unless
+# the row says where), and how far the housings reach beyond the joint ("up to").
+UR10_ENVELOPE = {
+    "base": (0.105, 0.030),             # 105 (ball-like); housings 30
+    "shoulder": (0.101, 0.082),         # 76-101; up to 82
+    "upper_arm": (0.054, 0.102),        # tube 54 ...
+    "upper_arm_housings": 0.103,        # ... 103 at the shoulder and elbow housings; up to 102
+    "forearm": (0.044, 0.077),          # tube 44 ...
+    "forearm_elbow_housing": 0.076,     # ... 76 at the elbow housing; up to 77
+    "wrist_1": (0.076, 0.035),          # wrist 1 and wrist 2: 68-76; up to 35
+    "wrist_2": (0.076, 0.035),
+    "wrist_3": (0.047, 0.002),          # 47; 2
+}
+KINOVA_ENVELOPE = {
+    "base": (0.054, 0.030),             # 46-54; 30
+    "shoulder": (0.057, 0.053),         # shoulder, bicep, forearm: 55-57, 46-55, 39-54; up to 53
+    "bicep": (0.055, 0.053),
+    "forearm": (0.054, 0.053),
+    "spherical_wrist_1": (0.046, 0.043),   # spherical wrists 1 and 2: 37-46; up to 43
+    "spherical_wrist_2": (0.046, 0.043),
+    "bracelet": (0.050, 0.015),         # 50; 15
+}
+# Where the joint centres are (the table does not say; these are the models' choices, given
+# here so that the envelope test builds the envelopes from these numbers and the published
+# kinematics, not from the models' bodies).  UR10: J1 at d1 above the floor; J2 and J3 where
+# the upper-arm tube sits along their axes, the forearm tube's ends along the J3 and J4 axes;
+# J5 and J6 where the wrist axes cross (DH origins o4 and o5).  Kinova: each joint's origin.
+UR10_UPPER_ARM_TUBE_Z = 0.176    # along the J2/J3 axes from the DH origins (urdf/ur10.xacro)
+UR10_FOREARM_TUBE_Z = 0.049      # along the J3/J4 axes (the manufacturer's elbow offset)
+# the print head (arm profiles' tool.head): every body stays this far behind the nozzle tip
+HEAD_TIP_GAP = 0.005

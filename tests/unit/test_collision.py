@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import yourdfpy
 
+import robot_facts as F
 from ambots.collision import (ArmBody, bed_clearance, box_clearance, capsule_distances, clearance_between,
                               part_clearance, seam_zone, seam_zone_mm, segment_distance)
 from ambots.config import default_cell_path, load_cell
@@ -124,8 +125,9 @@ def test_segment_distance_broadcasts():
 
 # ------------------------------------------------------------ capsules
 def urdf_capsules(arm, q):
-    """Capsule endpoints and radii from the URDF cylinders, by yourdfpy's own
-    parser and forward kinematics: (names, A, B, r), world frame."""
+    """Capsule endpoints and radii from the URDF cylinders (and spheres), by
+    yourdfpy's own parser and forward kinematics: (names, A, B, r), world
+    frame."""
     profile = arm.profile
     robot = yourdfpy.URDF.load(io.BytesIO(arm_urdf(profile).encode()), build_scene_graph=True,
                                load_meshes=False, build_collision_scene_graph=False, load_collision_meshes=False)
@@ -133,16 +135,17 @@ def urdf_capsules(arm, q):
     names, A, B, r = [], [], [], []
     for link in robot.robot.links:
         for col in link.collisions:
-            cyl = col.geometry.cylinder
+            cyl, ball = col.geometry.cylinder, col.geometry.sphere
+            radius, length = (ball.radius, 0.0) if ball is not None else (cyl.radius, cyl.length)
             T = arm.base_pose @ robot.get_transform(link.name, profile.base_link) @ col.origin
-            ends = [T @ [0, 0, z * cyl.length / 2, 1] for z in (-1, 1)]
-            inset = min(cyl.radius, cyl.length / 2)
+            ends = [T @ [0, 0, z * length / 2, 1] for z in (-1, 1)]
+            inset = min(radius, length / 2)
             axis = T[:3, 2]
             names.append(link.name)
             A.append(ends[0][:3] + inset * axis)
             B.append(ends[1][:3] - inset * axis)
-            r.append(cyl.radius)
-    return names, np.array(A), np.array(B), np.array(r)
+            r.append(radius)
+    return np.array(names), np.array(A), np.array(B), np.array(r)
 
 
 @pytest.mark.parametrize("which", [0, 1])
@@ -155,11 +158,19 @@ def test_capsules_agree_with_urdf_cylinders(cell, bodies, which):
     for q in (np.asarray(arm.profile.home), rng.uniform(lo, hi)):
         names, A, B, r = urdf_capsules(arm, q)
         got_A, got_B, got_r = body.capsules(q)
-        assert list(body.names) == names
-        assert "base_link" in names and "nozzle" in names
-        np.testing.assert_allclose(got_r, r)
-        np.testing.assert_allclose(got_A[0], A, atol=1e-9)
-        np.testing.assert_allclose(got_B[0], B, atol=1e-9)
+        assert "base_link" in body.names and "nozzle" in body.names
+        # every checked capsule is a URDF cylinder's, on the same link ...
+        same = ((body.names[:, None] == names[None]) & np.isclose(got_r[:, None], r[None], rtol=0, atol=1e-12)
+                & (np.linalg.norm(got_A[0][:, None] - A[None], axis=-1) < 1e-9)
+                & (np.linalg.norm(got_B[0][:, None] - B[None], axis=-1) < 1e-9))
+        assert same.any(axis=1).all()
+        # ... and every URDF cylinder's capsule lies inside a checked one of its link
+        # (those inside another are dropped): both segment ends within the radius difference
+        for k in np.nonzero(~same.any(axis=0))[0]:
+            mine = body.names == names[k]
+            inside = [segment_distance(got_A[0][mine], got_B[0][mine], p, p) + r[k] <= got_r[mine] + 1e-9
+                      for p in (A[k], B[k])]
+            assert np.any(inside[0] & inside[1]), "%s capsule %d is not checked" % (names[k], k)
 
 
 @pytest.mark.parametrize("which", [0, 1])
@@ -173,13 +184,16 @@ def test_nozzle_capsule_stops_5mm_above_the_tip(cell, bodies, which):
     T = arm.base_pose @ body.kin.fk_batch(Q)
     tip, axis = T[:, :3, 3], T[:, :3, :3] @ body.kin.tool_axis      # axis points out of the tip
     A, B, r = body.capsules(Q)
-    k = list(body.names).index("nozzle")
-    # the capsule's lowest point along the nozzle axis, measured up from the tip
-    above = np.minimum(np.einsum("ij,ij->i", tip - A[:, k], axis),
-                       np.einsum("ij,ij->i", tip - B[:, k], axis)) - r[k]
+    k = np.nonzero(body.names == "nozzle")[0]                         # the print head's bodies
+    assert len(k) > 1
+    # each head capsule's lowest point along the nozzle axis, measured up from the tip
+    above = np.minimum(np.einsum("ij,ikj->ik", axis, tip[:, None] - A[:, k]),
+                       np.einsum("ij,ikj->ik", axis, tip[:, None] - B[:, k])) - r[k]
     assert above.min() >= 0.005 - 1e-9
-    # and the tip itself is 5 mm from the capsule's surface
-    np.testing.assert_allclose(segment_distance(A[:, k], B[:, k], tip, tip) - r[k], 0.005, atol=1e-9)
+    # and the tip itself is 5 mm from the nearest one's surface (the profiles' heads
+    # reach down to 5 mm behind the tip on the nozzle axis)
+    near = (segment_distance(A[:, k], B[:, k], tip[:, None], tip[:, None]) - r[k]).min(axis=1)
+    np.testing.assert_allclose(near, 0.005, atol=1e-9)
 
 
 def test_capsules_of_many_configurations(bodies):
@@ -191,6 +205,13 @@ def test_capsules_of_many_configurations(bodies):
 
 
 # ------------------------------------------------------------ arm vs arm
+def duct_index(body, arm):
+    """Index of the capsule of the head's fan duct (on the nozzle axis)."""
+    duct = next(c for c in arm.profile.head if c.name == "fan_duct")
+    assert duct.a[:2] == duct.b[:2] == (0.0, 0.0)
+    return int(np.nonzero((body.names == "nozzle") & (body.radii == duct.radius))[0][0])
+
+
 def test_home_poses_do_not_collide(cell, bodies):
     k, u = cell.arms
     c = clearance_between(bodies["kinova"], k.profile.home, bodies["ur10"], u.profile.home)
@@ -207,14 +228,37 @@ def test_nozzles_side_by_side_collide(cell, bodies):
         c = clearance_between(bodies["kinova"], Qk, bodies["ur10"], Qu)
         assert c.shape == (3,)
         assert np.all(c < 0) if expect_touch else np.all(c > 0)
-        # the two vertical nozzle capsules alone: their axes are `gap` apart
+        # the two vertical fan ducts alone (the heads' bodies on the nozzle axis,
+        # tool.head in the profiles): their axes are `gap` apart
         A1, B1, r1 = bodies["kinova"].capsules(Qk)
         A2, B2, r2 = bodies["ur10"].capsules(Qu)
-        i, j = list(bodies["kinova"].names).index("nozzle"), list(bodies["ur10"].names).index("nozzle")
+        i, j = (duct_index(bodies[a], arm) for a, arm in (("kinova", k), ("ur10", u)))
         nn = capsule_distances(A1[:, [i]], B1[:, [i]], r1[[i]], A2[:, [j]], B2[:, [j]], r2[[j]])[:, 0, 0]
         np.testing.assert_allclose(nn, gap - r1[i] - r2[j], atol=1e-6)
         assert np.all(c <= nn + 1e-12)
 
+
+
+def test_firmware_check_says_what_a_pose_is_too_close_to(cell, bodies):
+    """The firmware's is_valid (driver trajectory) names the obstacle, the
+    clearance in mm and the closest links of a refused pose."""
+    from ambots.ros.firmware import CollisionCheck
+    k, u = cell.arms
+    check = CollisionCheck(k, cell, margin=0.005)
+    Qk = solve(cell, k, bodies["kinova"], [[-0.01, -0.01, 0.0002], [-0.08, -0.01, 0.0002], [0.0, 0.0, -0.01]])
+    qu = solve(cell, u, bodies["ur10"], [[0.08, -0.01, 0.0002]])[0]
+    assert check.explain(Qk[0]) == "clear" and check(Qk[:2]).all()         # the other arm not heard of yet
+    check.update("ur10", qu)
+    # nozzles 90 mm apart across the seam: the real-size wrists overlap
+    c = clearance_between(bodies["kinova"], Qk[:2], bodies["ur10"], np.stack([qu, qu]))
+    assert c[0] < 0 < 0.005 < c[1]
+    assert check(Qk[:2]).tolist() == [False, True]
+    why = check.explain(Qk[0])
+    assert why.startswith("ur10 %.2f mm (needs >= 5 mm): " % (c[0] * 1e3)) and " / " in why
+    assert check.explain(Qk[1]) == "clear"
+    # the nozzle 10 mm into the bed: the head's lowest body (5 mm short of the tip) 5 mm in
+    assert not check(Qk[2:]).any()
+    assert check.explain(Qk[2]).startswith("bed -5.00 mm (needs >= 0): nozzle")
 
 # ------------------------------------------------------------ boxes
 def sampled_box_clearance(a, b, r, lo, hi, n=4001):
@@ -262,10 +306,16 @@ def test_bed_clearance(cell, bodies):
         body = bodies[arm.name]
         Q = solve(cell, arm, body, [[0.0, 0.0, 0.0], [0.05, 0.05, -0.02], [0.0, 0.0, 0.1]])
         c = bed_clearance(body, Q, cell)
-        # on the bed the nozzle's capsule is 5 mm above it; 20 mm into it, the
-        # capsule's segment end is 10 mm above the top, less the 25 mm radius
+        # on the bed the head's lowest body is 5 mm above it (it stops 5 mm short of
+        # the tip); 20 mm into it, 15 mm below the top; 100 mm above it, 105 mm
         np.testing.assert_allclose(c, [0.005, -0.015, 0.105], atol=1e-6)
-        assert np.all(bed_clearance(body, Q, cell, skip=("base_link", "nozzle")) > 0.05)
+        # the rest of the arm: the last link, at most 50 mm in radius (robot facts:
+        # bracelet 50, UR10 wrist 3 47) around the tool axis up to the flange, 100 mm
+        # above the tip, stays 50 mm above the tip (30 mm with the tip 20 mm into the bed)
+        last = max(F.KINOVA_ENVELOPE["bracelet"][0], F.UR10_ENVELOPE["wrist_3"][0])
+        tips = np.array([0.0, -0.02, 0.1])
+        assert np.all(bed_clearance(body, Q, cell, skip=("base_link", "nozzle"))
+                      >= tips + arm.profile.tool_xyz[2] - last - 1e-9)
 
 
 def test_part_clearance(cell, bodies):
@@ -301,8 +351,17 @@ def test_seam_zone_of_the_default_cell(cell, bodies):
     c = clearance_between(bodies["kinova"], solve(cell, k, bodies["kinova"], pts - n * Z / 2),
                           bodies["ur10"], solve(cell, u, bodies["ur10"], pts + n * Z / 2))
     assert np.all(c > 0)
-    # ... but do when they are as close as the protrusions alone allow, less 10 mm
-    gap = (z.facing_mm - z.margin_mm - 10.0) / 1000.0
+    # ... but do when they are as close as the protrusions alone allow, less what the
+    # bodies' heights give back: the widest facing bodies are the Kinova's wrist housing
+    # (46 mm, on J5's axis 0.1 + 0.061525 + 0.10593 m above the tip) and the UR10's wrist
+    # (76 mm, on J5's axis through o5, 0.1 + d6 = 0.1922 m above it): 75.3 mm apart in
+    # height, they meet sqrt(122^2 - 75.3^2) = 96 mm apart across the seam, not 122 mm,
+    # so about 26 mm inside the protrusions' sum
+    dz = (0.1 - F.KINOVA_EE[0][2] + F.KINOVA_ORIGINS[5][0][1]) - (0.1 + F.UR10_DH[5][0])
+    reach = F.KINOVA_ENVELOPE["spherical_wrist_2"][0] + F.UR10_ENVELOPE["wrist_2"][0]
+    back = 1000.0 * (reach - np.sqrt(reach ** 2 - dz ** 2))
+    assert back == pytest.approx(26.0, abs=0.1)
+    gap = (z.facing_mm - z.margin_mm - back) / 1000.0
     c = clearance_between(bodies["kinova"], solve(cell, k, bodies["kinova"], pts - n * gap / 2),
                           bodies["ur10"], solve(cell, u, bodies["ur10"], pts + n * gap / 2))
     assert np.any(c < 0)

@@ -89,13 +89,16 @@ def _down(cell, arm, body, points):
 
 
 def test_arms_swinging_through_each_other_between_samples_are_caught(cell, bodies):
-    """The UR10 nozzle sweeps across the Kinova's, 150 mm to each side, in
-    0.06 s: at 0.1 s samples the poses are clear; brute force at 0.1 ms and
-    the continuous check both see the contact."""
+    """The UR10 nozzle sweeps across the Kinova's, from 200 mm on one side to
+    300 mm on the other, in 0.06 s: at 0.1 s samples the poses are clear;
+    brute force at 0.1 ms and the continuous check both see the contact.
+    (On the +y side the UR10's wrist 1 housing, 76 mm in radius around the
+    J4 axis, which runs 115 mm sideways from the wrist towards -y, reaches
+    back over the Kinova's head: it clears it only from about 250 mm.)"""
     kin, ur = cell.arm("kinova"), cell.arm("ur10")
     x, z = cell.bed.pose[0, 3], cell.bed.pose[2, 3] + 0.05
     qk = _down(cell, kin, bodies["kinova"], [[x, 0.0, z]])[0]
-    qa, qb = _down(cell, ur, bodies["ur10"], [[x, -0.15, z], [x, 0.15, z]])
+    qa, qb = _down(cell, ur, bodies["ur10"], [[x, -0.2, z], [x, 0.3, z]])
     t = np.array([0.0, 10.03, 10.09, 20.0])
     Qk, Qu = np.tile(qk, (4, 1)), np.array([qa, qa, qb, qb])
     traces = {"kinova": (t, Qk), "ur10": (t, Qu)}

@@ -293,7 +293,8 @@ def _box(tmp_path_factory, name, dims):
 
 #: layouts of 3, 4 and 4-of-8 arms: cell, arms (None: all), model box (mm)
 LAYOUTS = {
-    "three_arms": ("config/cells/three_arms.yaml", None, (160.0, 50.0, 0.6)),      # three around a point
+    # three around a point; wide enough that two print at once beyond their zones (154-240 mm)
+    "three_arms": ("config/cells/three_arms.yaml", None, (240.0, 120.0, 0.6)),
     "four_arms": ("config/cells/four_arms.yaml", None, (140.0, 120.0, 0.4)),       # 2 x 2, diagonals meet
     "beam_row": ("config/cells/eight_arms_beam.yaml",                              # a row, alternate sides
                  ["kinova_3", "ur10_4", "ur10_5", "kinova_6"], (1300.0, 30.0, 0.4)),
@@ -349,10 +350,13 @@ def test_n_arm_programs_keep_every_pair_a_zone_apart_whatever_the_timing(n_arm_j
 
 def test_n_arm_layouts_use_the_schedule_their_adjacency_needs(n_arm_jobs):
     """Three around a point and four in the corners (diagonal pairs adjacent
-    through the centre) are not two-colourable: a scheduled timeline; a row
-    is: banded sweeps."""
+    through the centre) are not two-colourable: a scheduled timeline.  A row
+    is, but its middle arms stand between two seams whose zones (157 and
+    170 mm: the arms' real envelopes, beside each other on alternate sides)
+    add up to about the 330 mm between them: they cannot keep clear of both
+    neighbours at once as banded sweeps need, so the row is scheduled too."""
     from ambots.coordinate import _read_layers, adjacent_arms
-    for layout, scheduled in (("three_arms", True), ("four_arms", True), ("beam_row", False)):
+    for layout, scheduled in (("three_arms", True), ("four_arms", True), ("beam_row", True)):
         c, parts, sliced, programs, zones = n_arm_jobs[layout]
         arms = [p.arm for p in parts]
         read = {a.name: _read_layers(sliced[a.name], a.name) for a in arms}
@@ -442,3 +446,29 @@ def test_sequential_parks_the_waiting_arms_clear_of_the_bed():
     sx, sy = c.bed.size[0] * 500.0, c.bed.size[1] * 500.0
     for m in first:
         assert abs(m.x) > sx or abs(m.y) > sy
+
+
+def test_the_timeline_counts_the_joint_moves_to_and_from_the_park_position():
+    """The firmware comes down from the park position in one joint move
+    (straight in joint space): the nozzle bulges off the straight line, here
+    (the Panda of the three-arm cell, towards its seam with the UR10) about
+    20 mm nearer the seam than either end.  The timeline's estimate of the
+    move (``_JointMoves``, counted in the step's footprint) follows the
+    firmware planner's own move."""
+    from ambots.coordinate import _JointMoves
+    from ambots.motion import MotionPlanner
+    c = load_cell("config/cells/three_arms.yaml")
+    panda = c.arm("panda")
+    park = park_positions_mm(c, c.arms)["panda"]
+    target = np.array([-104.6, -57.5, 10.2])                  # 10 mm over a chunk's start near the seam
+    planner = MotionPlanner(panda, c)
+    q_park = planner.kin.ik(planner.bed_mm_to_base(park[None])[0], np.asarray(panda.profile.home), planner.down)
+    tip = planner.world_to_bed_mm(planner.joint_move_to(planner.bed_mm_to_base(target[None])[0], q_park).tip)
+    low = tip[tip[:, 2] <= c.bed.max_height * 1000.0]
+    est = _JointMoves(c, c.arms).path("panda", park, target)
+    assert len(low) and len(est) and np.all(est[:, 2] <= c.bed.max_height * 1000.0)
+    assert np.linalg.norm(low[:, None] - est[None], axis=2).min(axis=1).max() < 6.0     # 32 samples
+    towards_ur10 = np.array([0.88, 0.47, 0.0]) / np.hypot(0.88, 0.47)
+    ends = max(park @ towards_ur10, target @ towards_ur10)
+    assert (low @ towards_ur10).max() > ends + 15.0
+    assert abs((est @ towards_ur10).max() - (low @ towards_ur10).max()) < 1.0

@@ -29,6 +29,7 @@ from ambots.config import default_cell_path, load_arm_profile, load_cell
 from ambots.errors import AmbotsError, ConfigError, GCodeError, MeshError
 from ambots.gcode import Command, Segment, parse_gcode_text, read_gcode
 from ambots.hub import Hub
+from ambots.model import arm_urdf
 from ambots.job import prepare_model, run_job, write_job
 from ambots.mesh import load_model, place_on_bed
 from ambots.motion import MotionPlanner, read_program
@@ -694,6 +695,27 @@ BAD_PROFILES = [
     ("missing model", _set("model", "urdf/no_such_robot.xacro"), "model", "no_such_robot.xacro not found"),
     ("colour as text", _set("filament_colour", "blue"), "filament_colour", "4 finite numbers"),
     ("inf reach", _set("reach", INF), "reach", "finite number"),
+    ("no print head", _pop("tool", "head"), "tool.head", "missing field"),
+    ("empty print head", _set("tool", "head", []), "tool.head", "non-empty list"),
+    ("head at the tip", _set("tool", "head", 0, "tube", [[0, 0, -0.001], [0, 0, -0.02]]), "tool.head[0]",
+     "must stay at least 2 mm behind it"),
+    ("head typo", _set("tool", "heads", []), "tool.heads", "unknown field"),
+    ("body of two kinds", _set("bodies", "base_link", 0, "ball", [0, 0, 0]), "bodies.base_link[0]",
+     "exactly one of tube, housing, ball"),
+    ("body without kind", _set("bodies", "base_link", 0, {"radius": 0.1}), "bodies.base_link[0]",
+     "exactly one of tube, housing, ball, got none"),
+    ("zero body radius", _set("bodies", "base_link", 0, "radius", 0), "bodies.base_link[0].radius", "must be > 0"),
+    ("tube of one point", _set("bodies", "base_link", 0, "tube", [[0, 0, 0]]), "bodies.base_link[0].tube",
+     "expected two points"),
+    ("NaN in a tube", _set("bodies", "base_link", 0, "tube", [[0, 0, 0], [0, NAN, 0]]),
+     "bodies.base_link[0].tube[1]", "3 finite numbers"),
+    ("housing without axis", _set("bodies", "shoulder_link", 1, "axis", [0, 0, 0]), "bodies.shoulder_link[1].axis",
+     "must not be zero"),
+    ("negative reach", _set("bodies", "shoulder_link", 1, "reach", -0.01), "bodies.shoulder_link[1].reach",
+     "must be >= 0"),
+    ("body field typo", _set("bodies", "shoulder_link", 1, "raduis", 0.1), "bodies.shoulder_link[1].raduis",
+     "unknown field"),
+    ("bodies of nothing", _set("bodies", "wrist_3_link", []), "bodies.wrist_3_link", "non-empty list"),
 ]
 
 
@@ -712,6 +734,16 @@ def test_bad_arm_profiles_name_the_file_and_field_also_through_the_cell(tmp_path
         load_cell(path)
     assert (info.value.path, info.value.field) == (path, "arms[1].profile")
     assert "%s: %s: " % (prof, field) in info.value.message and why in info.value.message
+
+
+def test_bodies_on_a_link_the_model_does_not_have_are_refused(tmp_path):
+    # a misspelt link would leave its bodies out of the collision model unnoticed
+    data = _profile_data()
+    data["bodies"]["wrist3_link"] = data["bodies"].pop("wrist_3_link")
+    prof = load_arm_profile(_write(tmp_path / "my arm.yaml", data))
+    with pytest.raises(ConfigError) as info:
+        arm_urdf(prof)
+    assert info.value.field == "bodies.wrist3_link" and "has no link 'wrist3_link'" in info.value.message
 
 
 # =============================================================================

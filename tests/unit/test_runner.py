@@ -677,6 +677,19 @@ def test_a_move_blocked_for_too_long_is_an_error_naming_its_line(arm, cell):
     assert err.line == 6 and "other arms blocked the way for 2 s" in err.message
 
 
+def test_a_blocked_move_says_what_its_end_is_too_close_to(arm, cell):
+    check = OtherArmInTheWay(arm.profile.home)
+    check.explain = lambda q: "ur10 -3.00 mm (needs >= 5 mm): bracelet_link / wrist_2_link"
+    r = new_runner(arm, cell, MotionPlanner(arm, cell, is_valid=check))
+    r.max_blocked_s = 1.0
+    load_and_start(r)
+    run(r, until=0.1)
+    assert r.block.blocked.startswith("goal configuration ")
+    assert r.block.blocked.endswith("is in collision (is_valid is False): ur10 -3.00 mm (needs >= 5 mm): "
+                                    "bracelet_link / wrist_2_link")
+    run(r, t_max=20.0)
+    assert "(needs >= 5 mm): bracelet_link / wrist_2_link" in messages(r, ErrorReport)[0].message
+
 def test_a_move_blocked_by_the_bed_itself_is_an_error_at_once(arm, cell):
     check = OtherArmInTheWay(arm.profile.home)
     check.static = check.__call__                       # no other arm: the obstacle is static

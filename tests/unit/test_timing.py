@@ -3,9 +3,10 @@ itself (``ambots.sim``: every arm's ArmRunner on one simulated clock) with
 each arm's speed perturbed at random, block by block (every run of G-code
 moves between two directives, every park move stretched by its own factor
 in [lo, hi], ranges drawn per arm): two arms facing each other (banded
-sweeps), three around a point and four in the corners (scheduled
-timeline), four in a row on alternate sides of a beam (banded sweeps, each
-arm with its own band edges).  However the timing slips, the barriers absorb it: no arm-arm
+sweeps), three around a point, four in the corners and four in a row on
+alternate sides of a beam (scheduled timeline: the middle arms of the row
+cannot keep clear of both their seams' zones at once, as banded sweeps
+need).  However the timing slips, the barriers absorb it: no arm-arm
 contact, and every two adjacent arms keep their nozzles the pair's seam zone
 apart across the plane between them.
 
@@ -26,10 +27,13 @@ from ambots.model import arm_kinematics
 from ambots.contact import Sweep
 from ambots.sim import _trace, check_motion, simulate
 
-#: cell, model box (mm), arms (None: the cell's): small jobs of a few layers
+#: cell, model box (mm), arms (None: the cell's): small jobs of a few layers, wide enough
+#: that two arms print at once beyond their seam zones (the arms' real envelopes: 154 mm
+#: between the Kinova and the UR10, up to 240 mm with the Panda; a 160 mm block would lie
+#: wholly in the zone, and the arms take turns)
 LAYOUTS = {
-    "two_arms": (None, (160.0, 40.0, 1.2), None),                              # the fault suite's block
-    "three_arms": ("config/cells/three_arms.yaml", (160.0, 50.0, 0.6), None),
+    "two_arms": (None, (240.0, 40.0, 1.2), None),
+    "three_arms": ("config/cells/three_arms.yaml", (240.0, 120.0, 0.6), None),
     "four_arms": ("config/cells/four_arms.yaml", (140.0, 120.0, 0.4), None),
     "beam_row": ("config/cells/eight_arms_beam.yaml", (1300.0, 20.0, 0.4),   # four in a row, alternate sides
                  ["kinova_3", "ur10_4", "ur10_5", "kinova_6"]),

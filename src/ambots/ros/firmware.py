@@ -42,7 +42,10 @@ hub, publishing joint states, the deposit and run statistics.
 * Travel and joint moves are planned around obstacles: the bed, and with a
   real arm (``driver`` trajectory) the other arms of the cell at their
   latest joint states (subscribed), with ``clearance_mm`` of margin
-  (:mod:`ambots.collision`).
+  (:mod:`ambots.collision`).  A move that only the other arms block waits
+  for them (:class:`~ambots.runner.ArmRunner`); the wait is logged once,
+  with what the refused pose is too close to (obstacle, clearance in mm,
+  closest links: :meth:`CollisionCheck.explain`).
 * ``driver``: ``"sim"`` (the above: the arm is simulated, joint states are
   the runner's) or ``"trajectory"`` (real time only): the motion also goes
   to the arm's joint trajectory controller as JointTrajectory chunks, the
@@ -67,7 +70,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from ambots import topics
 from ambots.checkpoint import StateStore
 from ambots.clock import ArmReady
-from ambots.collision import ArmBody, bed_clearance, clearance_between
+from ambots.collision import ArmBody, bed_clearance, capsule_distances, clearance_between
 from ambots.errors import ProtocolError
 from ambots.motion import MotionPlanner
 from ambots.protocol import (HUB, Ack, ArmState, ClearChunk, LoadChunk, Pause, SendPosition, Start, Status,
@@ -195,6 +198,32 @@ class CollisionCheck:
                 ok &= clearance_between(self.body, Q, self.others[name], np.tile(q, (len(Q), 1))) >= self.margin
         return ok
 
+    def explain(self, q):
+        """Why joint vector ``q`` fails the check (or ``"clear"``): each
+        obstacle it is too close to, with the clearance in mm and the
+        closest pair of links, e.g. ``ur10 -34.65 mm (needs >= 5 mm):
+        bracelet_link / wrist_2_link``."""
+        q = np.asarray(q, dtype=float)[None]
+        why = []
+        bed = float(bed_clearance(self.body, q, self.cell)[0])
+        if bed < 0.0:
+            names = [str(n) for n in dict.fromkeys(self.body.names)]
+            links = [n for n in names if n != "base_link"]          # bed_clearance skips the base link
+            per_link = [float(bed_clearance(self.body, q, self.cell, skip=[m for m in names if m != n])[0])
+                        for n in links]
+            link = ": " + links[int(np.argmin(per_link))]
+            why.append("bed %.2f mm (needs >= 0)%s" % (bed / MM, link))
+        for name, qo in sorted(self.q_other.items()):
+            other = self.others[name]
+            A1, B1, r1 = self.body.capsules(q)
+            A2, B2, r2 = other.capsules(qo[None])
+            D = capsule_distances(A1, B1, r1, A2, B2, r2)[0]
+            i, j = np.unravel_index(int(np.argmin(D)), D.shape)
+            if D[i, j] < self.margin:
+                why.append("%s %.2f mm (needs >= %g mm): %s / %s" % (name, D[i, j] / MM, self.margin / MM,
+                                                                     self.body.names[i], other.names[j]))
+        return "; ".join(why) or "clear"
+
 
 class FirmwareNode:
     """One arm's firmware on ROS (see the module docstring).
@@ -243,6 +272,7 @@ class FirmwareNode:
         self._thread = None
         self._traced = (None, None)
         self._late = False
+        self._blocked = False                 # the runner waits for other arms to clear the way (logged)
         self.driver = None
         if driver not in DRIVERS:
             raise ValueError("driver must be one of %s, got %r" % (", ".join(DRIVERS), driver))
@@ -385,6 +415,11 @@ class FirmwareNode:
             if q is not None:
                 r.q = q
         r.advance(self.sim_now)
+        blocked = r.block.blocked if r.block is not None else None
+        if blocked is not None and not self._blocked:       # once per wait: the move is tried every 0.5 s
+            rospy.logwarn("%s firmware: line %d waits for the other arms to clear the way: %s", self.arm.name,
+                          int(r.block.line[0]), blocked)
+        self._blocked = blocked is not None
         if self.driver is not None:
             self._chunks = self.driver.update(self.sim_now)
             self._chunks_at = (self.sim_now, rospy.get_time())
