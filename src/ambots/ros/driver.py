@@ -107,7 +107,8 @@ class TrajectoryDriver:
         self._synced = False
         self.chunks = self.points = 0
         self.min_lead = None              # s: least time between sending a chunk and its start
-        self.send_s = 0.0                 # s a chunk takes to build and send (mean of the recent ones)
+        self.send_s = 0.0                 # s from stamping a chunk to its being sent (mean of the recent ones)
+        self._stamped_at = None           # ROS time the chunks to publish were stamped for
 
     # ------------------------------------------------------------- ROS
     def start(self, runner):
@@ -197,12 +198,12 @@ class TrajectoryDriver:
         for c in self.stream.update(now):
             with self._lock:        # the stamps as of when the chunk will be out (the lag grows meanwhile)
                 out.append((c, self.pacer.stamps(c, ros_now + self.send_s)))
+        self._stamped_at = ros_now
         return out
 
     def publish(self, chunks):
         """Send ``chunks`` (from :meth:`update`)."""
         for c, t_ns in chunks:
-            t0 = time.monotonic()
             traj = JointTrajectory()
             traj.header.stamp = _time(int(t_ns[0]))
             traj.joint_names = list(self.spec.joint_names)
@@ -220,7 +221,8 @@ class TrajectoryDriver:
             self.min_lead = lead if self.min_lead is None else min(self.min_lead, lead)
             self._cmd.publish(traj)
             self._ext.publish(ext)
-            self.send_s += 0.3 * (time.monotonic() - t0 - self.send_s)
+            if self._stamped_at is not None:         # the rest of the step, building, sending
+                self.send_s += 0.3 * (rospy.get_time() - self._stamped_at - self.send_s)
             self._history.append((t_ns, c.q))
             self._synced = False
             self.chunks += 1
