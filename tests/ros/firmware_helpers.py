@@ -193,3 +193,43 @@ def nozzle_world(arm, q):
     kin = arm_kinematics(arm)
     T = arm.base_pose @ kin.fk_batch(np.asarray(q, dtype=float)[None])[0]
     return T[:3, 3]
+
+
+def turns_gcode(rounds=4, wait_x=110.0, zone_x=20.0, y0=-30.0, dy=15.0, feed=600, ids=(1, 2)):
+    """Two facing arms (ids[0] on the -x side of the bed, ids[1] on the +x
+    side) that take turns in a shared zone across the seam (bed x = 0): in
+    each round the first arm travels from its waiting point (x = -wait_x)
+    into the zone, prints a line across it (x -zone_x .. +zone_x), travels
+    back out to its next waiting point and reports (the A10 before its next
+    ;@A9); the second arm waits for that report (;@A9 on the first arm's
+    travel out), then does the same from its side (x = +wait_x), and the
+    first arm waits for it in the next round.  With ``wait_x`` 110 and
+    ``zone_x`` 20 the arm in the zone and the waiting arm are 90 mm apart
+    across the seam (of the default cell's ~80 mm that the arms' bodies
+    need); without the barriers they meet in the zone.
+
+    Returns ``({id: text}, barriers)``: every barrier as (waiting id,
+    awaited id, the awaited line, the awaited arm's bed xy at the end of
+    that line, the waiting arm's bed xy while it waits)."""
+    a, b = ids
+    head = ["G21", "G90", "M83", ";LAYER_CHANGE", ";Z:0.2"]
+    prog = {a: list(head), b: list(head)}
+    where = {a: (-wait_x, y0), b: (wait_x, y0 + 5.0)}
+    for i in (a, b):
+        prog[i].append("G0 X%.3f Y%.3f Z0.2 F6000" % where[i])
+    barriers = []
+    last_exit = None
+    for r in range(rounds):
+        for i, side, off in ((a, -1.0, 0.0), (b, 1.0, 5.0)):
+            y = y0 + dy * r + off
+            if last_exit is not None:
+                other, line, end = last_exit
+                prog[i].append(";@A9 R%d W%d N%d" % (i, other, line))
+                barriers.append((i, other, line, end, where[i]))
+            out = (side * wait_x, y + dy)
+            prog[i] += ["G0 X%.3f Y%.3f Z0.2 F6000" % (side * zone_x, y),
+                        "G1 X%.3f Y%.3f E%.5f F%d" % (-side * zone_x, y, 2 * zone_x * 0.033, feed),
+                        "G0 X%.3f Y%.3f Z0.2 F6000" % out]
+            last_exit = (i, len(prog[i]), out)
+            where[i] = out
+    return {i: "\n".join(p) + "\n" for i, p in prog.items()}, barriers

@@ -28,10 +28,21 @@ and the controller's joint states read back.
   its own controller (e.g. a stepper behind ros_control) follows it.
 * Joint states: ``<arm ns>/<driver.joint_states_topic>`` (sensor_msgs/
   JointState) from anyone but this node, carrying every driver joint name,
-  is the controller's.  When the commanded motion has come to rest the
-  runner takes the measured joints once as where the arm is, so the next
-  motion starts there.  The firmware's own ``/<arm>/joint_states`` then
-  carry the measured joints (fresh ones, else what it commanded for now).
+  is the controller's.  When the commanded motion has come to rest (and
+  the arm has reached its end) the runner takes the measured joints once
+  as where the arm is, so the next motion starts there.  The firmware's
+  own ``/<arm>/joint_states`` then carry the measured joints (fresh ones,
+  else what it commanded for now).
+* Progress (:class:`ambots.pacing.Pacer`): once the controller's joint
+  states come, they tie the firmware to what the arm has really executed:
+  the runner's clock (:meth:`TrajectoryDriver.clock`) stays within
+  ``delay`` s of the arm's progress along the commanded samples, chunks
+  are stamped anew from the measured lag when the controller falls behind
+  (a scaled or stopped controller), and the firmware holds the messages
+  the runner produced until the arm has got there
+  (:meth:`TrajectoryDriver.released_until`).  The stamps of a chunk follow
+  from its runner times: ``c + shift`` (``shift`` = ``delay`` plus how far
+  the runner's clock is behind ROS time, while nothing lags).
 """
 import threading
 import time
@@ -42,6 +53,7 @@ import rospy
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from ambots.pacing import Pacer
 from ambots.trajectory import SplineTiming, Stream, driver_spec
 
 __all__ = ["DRIVERS", "TrajectoryDriver", "arm_topic"]
@@ -75,24 +87,28 @@ class TrajectoryDriver:
     delay : s from the firmware's clock to the controller's execution
     max_age : s a controller joint state stays fresh
     settle : s after the commanded motion ends before the measured joints are taken
+    progress_tie : False: the runner on the wall clock and the plan's timeline
+        whatever the controller does (the firmware before :mod:`ambots.pacing`;
+        for comparisons only: it lets the arm fall behind its reports)
     """
 
-    def __init__(self, arm, planner, chunk_duration=0.5, delay=0.3, max_age=0.5, settle=0.1):
+    def __init__(self, arm, planner, chunk_duration=0.5, delay=0.3, max_age=0.5, settle=0.1,
+                 progress_tie=True):
         self.arm = arm
         self.spec = driver_spec(arm.profile)
         self.timing = SplineTiming.for_planner(planner)
         planner.timing = self.timing
         self.stream = Stream(self.spec.sample_period, chunk_duration)
         self.delay, self.max_age, self.settle = float(delay), float(max_age), float(settle)
-        self.dt_ns = int(round(self.spec.sample_period * NS))
-        self._lock = threading.Lock()
+        self.pacer = Pacer(self.spec.sample_period, lead=self.delay, tie=progress_tie)
+        self._lock = threading.Lock()         # the measurements and the pacer
         self._measured = None             # (q, monotonic time)
-        self._stamp0 = (None, 0)          # (segment, ns of its sample 0)
-        self._last_ns = 0                 # stamp of the last point sent
         self._history = deque(maxlen=16)  # (ns (M,), Q (M, n)) of recent chunks
         self._synced = False
         self.chunks = self.points = 0
         self.min_lead = None              # s: least time between sending a chunk and its start
+        self.send_s = 0.0                 # s from stamping a chunk to its being sent (mean of the recent ones)
+        self._stamped_at = None           # ROS time the chunks to publish were stamped for
 
     # ------------------------------------------------------------- ROS
     def start(self, runner):
@@ -106,9 +122,10 @@ class TrajectoryDriver:
         rospy.Subscriber(self.joint_states_topic, JointState, self._on_joint_states, queue_size=10)
         runner.on_motion = self.stream.started
         rospy.loginfo("%s firmware: driver trajectory: %s (%d joints, %g ms samples, %g s chunks, %g s ahead), "
-                      "extruder %s, joint states from %s", name, self.command_topic, len(spec.joint_names),
-                      spec.sample_period * 1e3, self.stream.chunk_n * spec.sample_period, self.delay,
-                      self.extruder_topic, self.joint_states_topic)
+                      "extruder %s, joint states from %s, progress %s", name, self.command_topic,
+                      len(spec.joint_names), spec.sample_period * 1e3, self.stream.chunk_n * spec.sample_period,
+                      self.delay, self.extruder_topic, self.joint_states_topic,
+                      "tied to them" if self.pacer.tie else "NOT tied to them (progress_tie false)")
 
     def _on_joint_states(self, msg):
         header = getattr(msg, "_connection_header", None) or {}
@@ -120,8 +137,11 @@ class TrajectoryDriver:
         except (KeyError, IndexError):
             return
         if np.all(np.isfinite(q)):
+            stamp = msg.header.stamp
+            t = stamp.to_sec() if (stamp.secs or stamp.nsecs) else rospy.get_time()
             with self._lock:
                 self._measured = (q, time.monotonic())
+                self.pacer.measured(t, q)
 
     def measured(self):
         """The controller's latest joint vector if fresh, else None."""
@@ -132,13 +152,28 @@ class TrajectoryDriver:
         return m[0].copy()
 
     # ------------------------------------------------------------- the firmware's loop
+    def clock(self, ros_now):
+        """The runner's time now (ROS time ``ros_now``): within ``delay`` of
+        what the controller has executed (:class:`~ambots.pacing.Pacer`)."""
+        with self._lock:
+            return self.pacer.clock(ros_now)
+
+    def released_until(self):
+        """Messages the runner produced up to this runner time may leave."""
+        with self._lock:
+            return self.pacer.released_until()
+
     def rest_joints(self, runner, ros_now):
-        """With the runner between blocks and the commanded motion at rest
-        for ``settle`` s: the measured joints, once per rest (None otherwise)."""
+        """With the runner between blocks, the commanded motion at rest for
+        ``settle`` s and the arm at its end: the measured joints, once per
+        rest (None otherwise)."""
         if self._synced or runner.block is not None:
             return None
-        if self._last_ns and ros_now * NS < self._last_ns + self.settle * NS:
-            return None
+        with self._lock:
+            last_ns = self.pacer.last_ns
+            resting = not (last_ns and ros_now * NS < last_ns + self.settle * NS)
+            if not resting or (self.pacer.closed and self.pacer.pending()):     # the arm is not there yet
+                return None
         q = self.measured()
         if q is not None:
             self._synced = True
@@ -155,18 +190,20 @@ class TrajectoryDriver:
         """Before the runner drops its block (A4): brake; returns the joints where the arm stops, or None."""
         return self.stream.abort(runner, now, self.timing.amax)
 
-    def update(self, now):
-        """The chunks due at the runner's time ``now`` (lock held by the caller)."""
-        return self.stream.update(now)
+    def update(self, now, ros_now):
+        """The chunks due at the runner's time ``now`` (lock held by the
+        caller; ``ros_now``: the same instant in ROS time), each with the
+        stamps of its points (ns): ``[(chunk, t_ns (M,))]`` for :meth:`publish`."""
+        out = []
+        for c in self.stream.update(now):
+            with self._lock:        # the stamps as of when the chunk will be out (the lag grows meanwhile)
+                out.append((c, self.pacer.stamps(c, ros_now + self.send_s)))
+        self._stamped_at = ros_now
+        return out
 
-    def publish(self, chunks, sim_now, ros_now):
-        """Send ``chunks``; ``sim_now`` and ``ros_now`` (s) are the same instant."""
-        offset = ros_now - sim_now + self.delay
-        for c in chunks:
-            seg = c.segment
-            if self._stamp0[0] is not seg:
-                self._stamp0 = (seg, max(int(round((seg.start_time + offset) * NS)), self._last_ns))
-            t_ns = self._stamp0[1] + (c.first + np.arange(len(c.q))) * self.dt_ns
+    def publish(self, chunks):
+        """Send ``chunks`` (from :meth:`update`)."""
+        for c, t_ns in chunks:
             traj = JointTrajectory()
             traj.header.stamp = _time(int(t_ns[0]))
             traj.joint_names = list(self.spec.joint_names)
@@ -184,7 +221,8 @@ class TrajectoryDriver:
             self.min_lead = lead if self.min_lead is None else min(self.min_lead, lead)
             self._cmd.publish(traj)
             self._ext.publish(ext)
-            self._last_ns = int(t_ns[-1])
+            if self._stamped_at is not None:         # the rest of the step, building, sending
+                self.send_s += 0.3 * (rospy.get_time() - self._stamped_at - self.send_s)
             self._history.append((t_ns, c.q))
             self._synced = False
             self.chunks += 1
@@ -205,6 +243,9 @@ class TrajectoryDriver:
         return self._history[0][1][0].copy()
 
     def stats(self):
+        with self._lock:
+            pacing = self.pacer.stats()
         return {"driver": "trajectory", "command_topic": self.command_topic, "chunks": self.chunks,
                 "points": self.points, "sample_period": self.spec.sample_period,
-                "min_lead_s": None if self.min_lead is None else round(self.min_lead, 4)}
+                "min_lead_s": None if self.min_lead is None else round(self.min_lead, 4),
+                "progress_tie": self.pacer.tie, **pacing}

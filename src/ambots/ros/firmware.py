@@ -51,9 +51,19 @@ hub, publishing joint states, the deposit and run statistics.
   to the arm's joint trajectory controller as JointTrajectory chunks, the
   extruder's in step, and the controller's joint states are read back
   (:mod:`ambots.ros.driver`); pause (A2) brakes after what was sent, to
-  rest at the end of a G-code line, A4 while moving brakes at once.
+  rest at the end of a G-code line, A4 while moving brakes at once.  Once
+  the controller's joint states come, the runner's clock follows what the
+  arm has really executed (:mod:`ambots.pacing`): it runs at most
+  ``command_delay`` s ahead of the arm's progress along the commanded
+  motion, and the messages the runner produces (A10/A11, directives for
+  other arms) leave only when the arm has got as far as the runner was
+  when it produced them, so a barrier of another arm is never released
+  by progress this arm has not made.  The other arms' reports count from
+  when they arrive (their M word is their own arm's time).
 """
+import dataclasses
 import json
+import math
 import queue
 import threading
 import time
@@ -235,12 +245,14 @@ class FirmwareNode:
     driver : ``"sim"`` or ``"trajectory"`` (:mod:`ambots.ros.driver`; a real arm: the wall clock)
     chunk_duration, command_delay : s of motion per JointTrajectory; s the
         controller executes after the firmware's clock (``trajectory``)
+    progress_tie : ``trajectory``: tie the clock and the reports to the
+        controller's joint states (False: the plan's timeline, for comparisons)
     """
 
     def __init__(self, arm, cell, rate=50.0, report_period=1.0,
                  marker_rate=4.0, bead_width_mm=0.45, clearance_mm=5.0, max_beads=2000,
                  retry_period=0.05, max_tries=None, state_dir=None, run_id="", slowdown=1.0,
-                 driver="sim", chunk_duration=0.5, command_delay=0.3):
+                 driver="sim", chunk_duration=0.5, command_delay=0.3, progress_tie=True):
         self.arm, self.cell = arm, cell
         self.rate = float(rate)
         #: the one clock is simulated (/clock, use_sim_time) rather than the wall
@@ -280,8 +292,11 @@ class FirmwareNode:
             if self.sim_clock:
                 raise ValueError("driver trajectory drives a real arm: its clock is the wall, not a "
                                  "simulated /clock (use_sim_time must be false)")
-            self.driver = TrajectoryDriver(arm, self.runner.planner, chunk_duration, command_delay)
+            self.driver = TrajectoryDriver(arm, self.runner.planner, chunk_duration, command_delay,
+                                           progress_tie=progress_tie)
         self._chunks = []
+        #: (runner time, message) produced but held until the arm got there (driver trajectory)
+        self._held = []
 
     # ------------------------------------------------------------- ROS
     def start(self):
@@ -381,6 +396,10 @@ class FirmwareNode:
         stop_q = None
         if self.driver is not None and isinstance(message, ClearChunk) and message.robot == self.arm.id:
             stop_q = self.driver.abort(r, self.sim_now)       # the arm was moving: it brakes
+        if isinstance(message, Status) and message.robot != self.arm.id and self.driver is not None \
+                and message.clock is not None:
+            # each arm's time follows its own controller: a report counts from when it arrives
+            message = dataclasses.replace(message, clock=None)
         if isinstance(message, Status) and message.robot != self.arm.id:
             name = message.state.name
             if self.peers.get(message.robot) != name:
@@ -401,9 +420,13 @@ class FirmwareNode:
         """One iteration (lock held): commands, the clock, what to publish."""
         r = self.runner
         self._peers_changed = False
-        # the one clock: ROS time (/clock in simulation, the wall with a real arm);
-        # commands that arrived are executed at this instant
-        self.sim_now = max(self.sim_now, rospy.get_time(), self._clock_now)
+        # the one clock: ROS time (/clock in simulation, the wall with a real arm,
+        # held back to what its controller has executed); commands that arrived
+        # are executed at this instant
+        if self.driver is not None:
+            self.sim_now = max(self.sim_now, self.driver.clock(rospy.get_time()))
+        else:
+            self.sim_now = max(self.sim_now, rospy.get_time(), self._clock_now)
         acks = []
         while True:
             try:
@@ -421,9 +444,8 @@ class FirmwareNode:
                           int(r.block.line[0]), blocked)
         self._blocked = blocked is not None
         if self.driver is not None:
-            self._chunks = self.driver.update(self.sim_now)
-            self._chunks_at = (self.sim_now, rospy.get_time())
-        out = [m for _, m in r.outbox]
+            self._chunks = self.driver.update(self.sim_now, rospy.get_time())
+        out = list(r.outbox)              # (runner time, message)
         r.outbox.clear()
         trace = beads = None
         if r.trace_t:             # the executed motion as Hermite knots, ROS time: rows (t, q..., v...)
@@ -457,17 +479,18 @@ class FirmwareNode:
                     out, acks, changed, q, peers_changed = self._step(wall - last)
                     state = self.runner.state
                     if self._outgoing:
-                        out = self._outgoing + out
+                        out = [(-math.inf, m) for m in self._outgoing] + out
                         self._outgoing = []
                     if state is ArmState.PRINTING and wall >= next_report:
                         next_report = wall + self.report_period
                         st = self.runner.status(with_position=True)
                         if last_status is None or (st.layer, st.line, st.percent) != \
                                 (last_status.layer, last_status.line, last_status.percent):
-                            out.append(st)
-                    for m in out:
+                            out.append((self.runner.clock, st))
+                    for _, m in out:
                         if isinstance(m, Status) and m.robot == self.arm.id:
                             last_status = m
+                    out = self._release(out)
                     # number what goes out, then checkpoint, then publish: a crash
                     # anywhere in between is undone by the restart
                     numbered = self._number(out)
@@ -487,7 +510,7 @@ class FirmwareNode:
             last = wall
             try:
                 if self._chunks:
-                    self.driver.publish(self._chunks, *self._chunks_at)
+                    self.driver.publish(self._chunks)
                     self._chunks = []
                     if self.driver.min_lead is not None and self.driver.min_lead < 0 and not self._late:
                         self._late = True
@@ -508,11 +531,13 @@ class FirmwareNode:
                     for o in due:
                         self._to_hub.publish(String(encode(o.message)))
                 # joint states at every new instant of the one clock, stamped with it (with
-                # the wall as the clock, at most at the tick rate)
-                if self.sim_now != js_time and (self.sim_clock or wall >= next_joints):
+                # the wall as the clock, at most at the tick rate; with a controller, at
+                # the tick rate stamped with ROS time: its joints, which move on even
+                # while the runner's time waits for them)
+                if (self.sim_now != js_time or self.driver is not None) and (self.sim_clock or wall >= next_joints):
                     next_joints = max(next_joints + period, wall)
                     js_time = self.sim_now
-                    self._js.header.stamp = rospy.Time.from_sec(js_time)
+                    self._js.header.stamp = rospy.Time.from_sec(js_time if self.driver is None else rospy.get_time())
                     if self.driver is not None:          # the controller's joints, else what it was told
                         measured = self.driver.measured()
                         if measured is None:
@@ -531,8 +556,9 @@ class FirmwareNode:
                         log("%s firmware: %s", self.arm.name, state.name)
                     last_state = state
                 self._publish_ready()
-            except rospy.ROSException:
-                if rospy.is_shutdown():        # a topic closed under us: the node is going down
+            except rospy.ROSException as exc:
+                # a topic closed under us: the node is going down (is_shutdown may follow a little later)
+                if rospy.is_shutdown() or "closed topic" in str(exc):
                     break
                 raise
             # spare time until the next tick: plan the next moves ahead (one
@@ -545,6 +571,21 @@ class FirmwareNode:
                         break
                 time.sleep(0)             # let the callbacks run
             self._wake.wait(max(0.0, tick_end - time.monotonic()))
+
+    def _release(self, out):
+        """The messages of ``out`` ((runner time, message) pairs, in order)
+        that may leave now: all of them, or with a controller, those the
+        arm has got to (the rest are held, in order, for a later step)."""
+        if self.driver is None:
+            return [m for _, m in out]
+        self._held += out
+        until = self.driver.released_until()
+        n = 0
+        while n < len(self._held) and self._held[n][0] <= until + 1e-6:
+            n += 1
+        ready = [m for _, m in self._held[:n]]
+        del self._held[:n]
+        return ready
 
     def _publish_ready(self):
         """Tell the clock (:mod:`ambots.clock`) where this arm is: its step, its
@@ -581,7 +622,8 @@ class FirmwareNode:
             rx, tx = self.receiver.snapshot(), self.sender.snapshot()
         self.store.save({"run_id": self.run_id, "arm": self.arm.name, "runner": self.runner.checkpoint(),
                          "receiver": rx, "sender": tx, "sim_now": self.sim_now,
-                         "peers": {str(k): v for k, v in self.peers.items()}})
+                         "peers": {str(k): v for k, v in self.peers.items()},
+                         "held": [encode(m) for _, m in self._held]})
 
     def _resume_from_checkpoint(self):
         """After a crash (same ROS run): the runner, the duplicate filter,
@@ -610,8 +652,9 @@ class FirmwareNode:
             self.markers.add(Bead(journal[:, 0:3], journal[:, 3:6], journal[:, 6], journal[:, 7].astype(int),
                                   journal[:, 8].astype(int), journal[:, 9]))
         self.resumed = cp
-        self._outgoing = [self.runner.status(with_position=True)] + [
-            SendPosition(a.id) for a in self.cell.arms if a.id != self.arm.id]
+        # messages held for the arm's progress when it stopped: the arm has stopped too
+        self._outgoing = [decode(text) for text in cp.get("held", [])] + [self.runner.status(with_position=True)] \
+            + [SendPosition(a.id) for a in self.cell.arms if a.id != self.arm.id]
         rospy.logwarn("%s firmware: resumed from its checkpoint: %s at line %d, %d beads kept",
                       self.arm.name, self.runner.state.name, self.runner.done_line, len(journal))
 
@@ -623,7 +666,8 @@ class FirmwareNode:
             "clock": "sim" if self.sim_clock else "wall", "beads": self.markers.n_beads,
             "stats": asdict(r.stats),
             "peers": {self._names.get(i, str(i)): s for i, s in sorted(self.peers.items())},
-            "driver": self.driver.stats() if self.driver is not None else {"driver": "sim"},
+            "driver": dict(self.driver.stats(), held=len(self._held)) if self.driver is not None
+            else {"driver": "sim"},
         })
 
     def publish_all_markers(self, publish):
