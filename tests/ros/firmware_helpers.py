@@ -195,7 +195,7 @@ def nozzle_world(arm, q):
     return T[:3, 3]
 
 
-def turns_gcode(rounds=4, wait_x=110.0, zone_x=20.0, y0=-30.0, dy=15.0, feed=600, ids=(1, 2)):
+def turns_gcode(rounds=4, wait_x=170.0, zone_x=20.0, y0=-30.0, dy=15.0, feed=600, ids=(1, 2)):
     """Two facing arms (ids[0] on the -x side of the bed, ids[1] on the +x
     side) that take turns in a shared zone across the seam (bed x = 0): in
     each round the first arm travels from its waiting point (x = -wait_x)
@@ -203,10 +203,11 @@ def turns_gcode(rounds=4, wait_x=110.0, zone_x=20.0, y0=-30.0, dy=15.0, feed=600
     back out to its next waiting point and reports (the A10 before its next
     ;@A9); the second arm waits for that report (;@A9 on the first arm's
     travel out), then does the same from its side (x = +wait_x), and the
-    first arm waits for it in the next round.  With ``wait_x`` 110 and
-    ``zone_x`` 20 the arm in the zone and the waiting arm are 90 mm apart
-    across the seam (of the default cell's ~80 mm that the arms' bodies
-    need); without the barriers they meet in the zone.
+    first arm waits for it in the next round.  With ``wait_x`` 170 and
+    ``zone_x`` 20 the arm in the zone and the waiting arm are 150 mm apart
+    across the seam: their real-size bodies at least 24.8 mm apart at the
+    ends of the line (at 110 they overlap by 34.6 mm); without the barriers
+    they meet in the zone.
 
     Returns ``({id: text}, barriers)``: every barrier as (waiting id,
     awaited id, the awaited line, the awaited arm's bed xy at the end of
