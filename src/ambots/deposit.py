@@ -17,6 +17,10 @@ API (world frame, metres):
   ``to_mesh(colours=None)`` -> one :class:`trimesh.Trimesh`; ``export(path,
   colours=None, scale=1.0)`` (PLY or STL by extension).
 * :func:`bead_boxes` -- the vectorised box corners of many beads.
+* :func:`bead_area_m2` -- a bead's cross-section from the filament pushed;
+  :func:`deposit_of_beads` -- the one deposit builder: the beads an arm laid
+  (the offline runners' or the rows the firmware nodes publish) -> a
+  :class:`Deposit`, used by ``plan`` and by the live capture alike.
 
 Mesh construction is vectorised (no Python loop per bead): 8 vertices and
 12 triangles per bead, outward-facing, beads not welded together, so every
@@ -27,7 +31,33 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["Beads", "Deposit", "bead_boxes", "BOX_FACES"]
+__all__ = ["Beads", "Deposit", "bead_boxes", "BOX_FACES", "FILAMENT_AREA_MM2", "bead_area_m2", "deposit_of_beads"]
+
+#: cross-section of 1.75 mm filament, mm^2
+FILAMENT_AREA_MM2 = np.pi * (1.75 / 2) ** 2
+
+
+def bead_area_m2(p0, p1, e_mm):
+    """Cross-section (K,) m^2 of beads from ``p0`` to ``p1`` (K, 3) m laid with
+    ``e_mm`` (K,) mm of filament: the filament's volume over the length (0
+    for a bead of no length)."""
+    L = np.linalg.norm(np.asarray(p1, float) - np.asarray(p0, float), axis=1)
+    return np.where(L > 0, np.asarray(e_mm, float) * FILAMENT_AREA_MM2 * 1e-9 / np.maximum(L, 1e-12), 0.0)
+
+
+def deposit_of_beads(by_arm, height_m):
+    """The one deposit builder: ``by_arm`` {arm name: (p0 (K, 3), p1 (K, 3),
+    e_mm (K,))} (world frame m; mm of filament) -> :class:`Deposit`, beads
+    of layer height ``height_m``; beads with no length or no filament are
+    left out."""
+    dep = Deposit()
+    for name, (p0, p1, e_mm) in by_arm.items():
+        p0, p1 = np.asarray(p0, float).reshape(-1, 3), np.asarray(p1, float).reshape(-1, 3)
+        area = bead_area_m2(p0, p1, e_mm)
+        keep = area > 0
+        if keep.any():
+            dep.add(name, p0[keep], p1[keep], area[keep], height_m)
+    return dep
 
 #: triangles of one box whose corners are numbered ``4 * i + 2 * j + k`` for
 #: the corner at (i, j, k) in {0, 1}^3 of a right-handed frame (outward normals)

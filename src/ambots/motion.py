@@ -43,7 +43,7 @@ from ambots.units import MM
 from ambots.workspace import down_in_base
 
 __all__ = ["Moves", "Directive", "Pause", "read_program", "Block", "MotionPlanner", "estimate_time",
-           "MotionError", "DEFAULT_TOLERANCE_MM", "FILAMENT_AREA_MM2"]
+           "MotionError", "DEFAULT_TOLERANCE_MM"]
 
 #: largest distance (mm) between the nozzle and the programmed straight line
 DEFAULT_TOLERANCE_MM = 0.1
@@ -51,8 +51,6 @@ DEFAULT_TOLERANCE_MM = 0.1
 #: are placed (where the piece at that end is long enough): the ramps of the
 #: timing law at a corner happen over these
 RAMP_MM = (0.3, 1.0, 3.0)
-#: cross-section of 1.75 mm filament, mm^2
-FILAMENT_AREA_MM2 = np.pi * (1.75 / 2) ** 2
 
 
 class MotionError(AmbotsError):

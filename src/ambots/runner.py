@@ -43,10 +43,9 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ambots.errors import GCodeError
-from ambots.motion import Directive, MotionError, MotionPlanner, Pause as Dwell, read_program, FILAMENT_AREA_MM2
+from ambots.motion import Directive, MotionError, MotionPlanner, Pause as Dwell, read_program
 from ambots.protocol import (Ack, ArmState, ClearChunk, ErrorReport, LoadChunk, MoveTo, Pause, Resume,
                              SendPosition, Start, Status, WaitFor, MAX_TEXT, decode, encode)
-from ambots.units import MM
 
 __all__ = ["ArmRunner", "Bead", "RunStats"]
 
@@ -66,8 +65,8 @@ class Bead:
     @property
     def area_m2(self):
         """Cross-section of each bead (K,) m^2 from the filament pushed."""
-        L = np.linalg.norm(self.p1 - self.p0, axis=1)
-        return np.where(L > 0, self.e_mm * FILAMENT_AREA_MM2 * MM ** 3 / np.maximum(L, 1e-12), 0.0)
+        from ambots.deposit import bead_area_m2
+        return bead_area_m2(self.p0, self.p1, self.e_mm)
 
 
 #: a clock within this of a waypoint's time has reached it (s); the one clock

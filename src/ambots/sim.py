@@ -236,7 +236,7 @@ def report(result, motion, job=None, model=None, cell=None, mode=None, slicer=No
     (:func:`ambots.report.build`, the builder the live capture uses too)."""
     from dataclasses import asdict
 
-    from ambots.motion import FILAMENT_AREA_MM2
+    from ambots.deposit import FILAMENT_AREA_MM2
     from ambots.report import arm_entry, build
     arms = {}
     deposit_mm3 = 0.0

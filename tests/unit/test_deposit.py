@@ -131,3 +131,20 @@ def test_many_beads():
     mesh = dep.to_mesh(colours={"ur10": (0, 0, 1)})
     assert len(mesh.faces) == 12 * k
     assert mesh.volume == pytest.approx(dep.volume_m3(), rel=1e-6)
+
+
+def test_the_one_deposit_builder_keeps_the_filament_volume():
+    """deposit_of_beads (used by plan and by the live capture): each bead's
+    box holds exactly the filament pushed for it, pi (1.75/2)^2 mm^2 x E mm;
+    beads without length or filament are left out."""
+    from ambots.deposit import deposit_of_beads
+    rng = np.random.default_rng(3)
+    p0 = rng.uniform(-0.05, 0.05, (40, 3))
+    p1 = p0 + rng.uniform(-0.01, 0.01, (40, 3))
+    p1[5] = p0[5]                                   # no length
+    e = rng.uniform(0.01, 0.5, 40)
+    e[7] = 0.0                                      # no filament
+    dep = deposit_of_beads({"a": (p0[:20], p1[:20], e[:20]), "b": (p0[20:], p1[20:], e[20:])}, 0.0002)
+    want = np.pi * (1.75 / 2) ** 2 * (e.sum() - e[5])
+    assert dep.volume_mm3() == pytest.approx(want, rel=1e-9)
+    assert len(dep.segments("a").starts) == 18 and len(dep.segments("b").starts) == 20

@@ -50,22 +50,18 @@ def plan_job(model, cell, arms=None, slicer="builtin", mode="concurrent", seam="
 
 
 def deposit_of(result, layer_height_m=None):
-    """The runners' beads as a :class:`~ambots.deposit.Deposit`."""
+    """The runners' beads as a :class:`~ambots.deposit.Deposit`
+    (:func:`ambots.deposit.deposit_of_beads`, as the live capture builds it)."""
     import numpy as np
-    from ambots.deposit import Deposit
+    from ambots.deposit import deposit_of_beads
     from ambots.slicer import SliceSettings
     h = layer_height_m or SliceSettings().layer_height_mm * 1e-3
-    dep = Deposit()
+    by_arm = {}
     for name, r in result.runners.items():
         beads = [b for b in r.beads if len(b.e_mm)]
-        if not beads:
-            continue
-        p0 = np.concatenate([b.p0 for b in beads])
-        p1 = np.concatenate([b.p1 for b in beads])
-        area = np.concatenate([b.area_m2 for b in beads])
-        keep = area > 0
-        dep.add(name, p0[keep], p1[keep], area[keep], h)
-    return dep
+        if beads:
+            by_arm[name] = tuple(np.concatenate([getattr(b, k) for b in beads]) for k in ("p0", "p1", "e_mm"))
+    return deposit_of_beads(by_arm, h)
 
 
 def run(args):

@@ -79,6 +79,17 @@ class HeadlessRviz:
                     p.kill()
 
 
+def _latest_copy(rows, col=0):
+    """Rows (K, m) in time order (column ``col``) as published; a restarted
+    firmware repeats what it had not checkpointed: of rows not earlier than
+    a later one, keep the later copy."""
+    import numpy as np
+    t = rows[:, col]
+    keep = np.ones(len(t), dtype=bool)
+    keep[:-1] = t[:-1] < np.minimum.accumulate(t[::-1])[::-1][1:]
+    return rows[keep]
+
+
 class PrintRecorder:
     """Watches a live print: the deposit markers (for the bead mesh), every
     arm's joint states (arm-arm clearance with the capsule model, for pairs
@@ -113,7 +124,7 @@ class PrintRecorder:
         self._states = {}          #: arm -> {stamp ns: joints}, the latest states as they arrived
         self.started = time.time()
         self.traces = {}          #: arm -> [(K, 1 + 2n) rows of (ROS time, joints, joint speeds)] as executed
-        self.bead_times = {}      #: arm -> [(K, 7) rows of (p0, p1, simulated t)]
+        self.bead_times = {}      #: arm -> [(K, 8) rows of (p0, p1, ROS time, e_mm)]
         self._row_seq = {}
         self.trace_gaps = 0       #: trace/bead chunks never received (numbered by the firmware)
         rospy.Subscriber(DEPOSIT_TOPIC, MarkerArray, self._on_markers, queue_size=100)
@@ -174,11 +185,7 @@ class PrintRecorder:
             return None
         out = {}
         for n, rows in traces.items():
-            # a restarted firmware repeats what it had not checkpointed: keep the later copy
-            t = rows[:, 0]
-            keep = np.ones(len(t), dtype=bool)
-            keep[:-1] = t[:-1] < np.minimum.accumulate(t[::-1])[::-1][1:]
-            rows = rows[keep]
+            rows = _latest_copy(rows)
             dof = (rows.shape[1] - 1) // 2                 # rows (t, q..., v...): Hermite knots
             out[n] = (rows[:, 0], rows[:, 1:1 + dof], rows[:, 1 + dof:])
         arms = {a.name: a for a in self.cell.arms if a.name in out}
@@ -237,28 +244,17 @@ class PrintRecorder:
         return all(s == "DONE" for s in states), any(s == "ERROR" for s in states)
 
     def deposit(self):
-        """The beads seen in the markers, as a :class:`~ambots.deposit.Deposit`
-        (LINE_LIST point pairs; width = the marker's line width, height = one
-        layer)."""
+        """The beads the firmware nodes published (``~beads`` rows), as a
+        :class:`~ambots.deposit.Deposit` built as ``plan`` builds it
+        (:func:`ambots.deposit.deposit_of_beads`); beads a restarted firmware
+        published twice are counted once."""
         import numpy as np
-        from ambots.deposit import Deposit
+        from ambots.deposit import deposit_of_beads
         from ambots.slicer import SliceSettings
-        h = SliceSettings().layer_height_mm * 1e-3
-        dep = Deposit()
         with self._lock:
-            by_arm = {}
-            for (ns, _), m in sorted(self.markers.items()):
-                if m.type != m.LINE_LIST or len(m.points) < 2:
-                    continue
-                P = np.array([[p.x, p.y, p.z] for p in m.points])
-                by_arm.setdefault(ns, []).append((P[0::2], P[1::2], m.scale.x))
-        for ns, chunks in by_arm.items():
-            p0 = np.concatenate([c[0] for c in chunks])
-            p1 = np.concatenate([c[1] for c in chunks])
-            w = np.concatenate([np.full(len(c[0]), c[2]) for c in chunks])
-            keep = np.linalg.norm(p1 - p0, axis=1) > 0
-            dep.add(ns, p0[keep], p1[keep], w[keep] * h, h)
-        return dep
+            rows = {n: _latest_copy(np.concatenate(v), col=6) for n, v in self.bead_times.items() if v}
+        return deposit_of_beads({n: (r[:, 0:3], r[:, 3:6], r[:, 7]) for n, r in rows.items()},
+                                SliceSettings().layer_height_mm * 1e-3)
 
     def write(self, out_dir, model=None, mode=None, slicer=None, model_volume_mm3=None):
         """Write ``deposit.ply`` and ``report.json`` into ``out_dir``; returns the report."""

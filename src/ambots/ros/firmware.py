@@ -454,8 +454,8 @@ class FirmwareNode:
             r.trace_t.clear()
             r.trace_q.clear()
             r.trace_v.clear()
-        if r.beads:               # the beads with their times: rows (p0 xyz, p1 xyz, t)
-            beads = np.concatenate([np.column_stack([b.p0, b.p1, b.t]) for b in r.beads])
+        if r.beads:               # the beads with their times: rows (p0 xyz, p1 xyz, t, e_mm)
+            beads = np.concatenate([np.column_stack([b.p0, b.p1, b.t, b.e_mm]) for b in r.beads])
         for bead in r.beads:
             if self.store is not None:
                 self.store.append(bead.p0, bead.p1, bead.e_mm, bead.line, bead.layer, bead.t)
