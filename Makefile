@@ -89,7 +89,7 @@ faults: setup
 DEMO_OUT ?= out/demo
 demo: setup
 	@rm -rf "$(DEMO_OUT)" && mkdir -p "$(DEMO_OUT)"
-	@echo "make demo: the demo model printed by both arms, headless (about a minute); log in $(DEMO_OUT)/launch.log"
+	@echo "make demo: the demo model printed by both arms, headless (about three minutes); log in $(DEMO_OUT)/launch.log"
 	@$(ROSENV) roslaunch ambots demo.launch out:="$(abspath $(DEMO_OUT))" > "$(DEMO_OUT)/launch.log" 2>&1 \
 	  || { tail -30 "$(DEMO_OUT)/launch.log"; echo "roslaunch failed: whole log in $(DEMO_OUT)/launch.log"; }
 	@echo; $(PY) -m ambots summary --capture "$(DEMO_OUT)"

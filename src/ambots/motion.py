@@ -517,14 +517,30 @@ class MotionPlanner:
                            scaled=False)
 
 
+def _feed_time(item):
+    """Seconds of an item at the programmed feeds (no acceleration): the
+    G-code's own time, the yardstick the planned layers are scaled by."""
+    if isinstance(item, Pause):
+        return item.seconds
+    t = 0.0
+    for s in item.segments:
+        if s.feedrate > 0:
+            L = float(np.linalg.norm(np.subtract(s.end, s.start)))
+            t += (L or abs(s.e)) * 60.0 / s.feedrate
+    return t
+
+
 def estimate_time(text, arm, cell, max_layers=6, path="<program>"):
     """Seconds ``arm`` needs to execute the G-code ``text`` (bed frame) alone,
     timed by the one timing law: a :class:`MotionPlanner` plans every move
     of up to ``max_layers`` layers spread evenly over the print (the first
-    and the last among them), dwells count as written, and the time of each
-    layer in between is interpolated linearly from its neighbours.
-    Directives are ignored (no other arm to wait for).  None when a move of
-    a planned layer is out of the arm's reach."""
+    and the last among them).  Each planned layer gives the ratio of its
+    planned time to its time at the programmed feeds; every layer takes its
+    time at the feeds times that ratio, interpolated linearly between the
+    planned layers (layers differ in length -- solid, infill -- much more
+    than in that ratio).  Dwells count as written; directives are ignored
+    (no other arm to wait for).  None when a move of a planned layer is out
+    of the arm's reach."""
     items, _, _ = read_program(text, path)
     layers, layer = {}, 0
     for it in items:
@@ -535,6 +551,7 @@ def estimate_time(text, arm, cell, max_layers=6, path="<program>"):
     if not layers:
         return 0.0
     order = sorted(layers)
+    feed = np.array([sum(_feed_time(it) for it in layers[lay]) for lay in order])
     pick = sorted({order[int(round(i))] for i in np.linspace(0, len(order) - 1, min(max_layers, len(order)))})
     planner = MotionPlanner(arm, cell)
     q = np.asarray(arm.profile.home, dtype=float)
@@ -546,7 +563,7 @@ def estimate_time(text, arm, cell, max_layers=6, path="<program>"):
         if block.error is not None:
             return None
         lead, q = block.duration, block.Q[-1]
-    times = []
+    ratios = []
     for lay in pick:
         t = 0.0
         for it in layers[lay]:
@@ -558,5 +575,6 @@ def estimate_time(text, arm, cell, max_layers=6, path="<program>"):
                 return None
             t += block.duration
             q = block.Q[-1]
-        times.append(t)
-    return lead + float(np.interp(order, pick, times).sum())
+        f = feed[order.index(lay)]
+        ratios.append(t / f if f > 0 else 1.0)
+    return lead + float((feed * np.interp(order, pick, ratios)).sum())
