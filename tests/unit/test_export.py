@@ -29,33 +29,35 @@ from ambots.sim import check_motion, report, simulate
 
 HEADER = ["G21", "G90", "M83", ";LAYER_CHANGE", ";Z:0.2"]
 UR10 = HEADER + [
-    "G0 X60 Y-20 Z0.2 F9000",         # 6: first travel: a joint move
-    "G1 X100 Y-20 E1.5 F1200",        # 7
-    "G1 X100 Y20 E1.5",               # 8
+    "G0 X100 Y-20 Z0.2 F9000",        # 6: first travel: a joint move
+    "G1 X140 Y-20 E1.5 F1200",        # 7
+    "G1 X140 Y20 E1.5",               # 8
     ";@A9 R2 W1 N13",                 # 9: wait until the Kinova has done its line 13
-    "G1 X60 Y20 E1.5",                # 10
+    "G1 X100 Y20 E1.5",               # 10
     "G1 E-0.8 F2100",                 # 11: retraction (no motion)
     "G0 Z0.6 F9000",                  # 12
-    "G0 X60 Y-10",                    # 13
+    "G0 X100 Y-10",                   # 13
     "G0 Z0.2",                        # 14
     "G1 E0.8 F2100",                  # 15
-    "G1 X90 Y-10 E1.0 F1800",         # 16
+    "G1 X130 Y-10 E1.0 F1800",        # 16
     "G4 P500",                        # 17
     ";LAYER_CHANGE",
     ";Z:0.4",
-    "G0 Z0.4 F9000",                  # 20: short lift from rest: planned far above the acceleration limit
-    "G1 X90 Y10 E1.0 F1800",          # 21
-    "G1 X60 Y10 E1.0",                # 22
+    "G0 Z0.4 F9000",                  # 20: short lift from rest
+    "G1 X130 Y10 E1.0 F1800",         # 21
+    "G1 X100 Y10 E1.0",               # 22
 ]
+#: the two arms print 200 mm apart at their nearest (x -100 and +100): with bodies
+#: that cover the real arms they need about 150 mm facing each other
 KINOVA = HEADER + [
-    "G0 X-60 Y-20 Z0.2 F9000",
-    "G1 X-100 Y-20 E1.5 F1200",
+    "G0 X-100 Y-20 Z0.2 F9000",
+    "G1 X-140 Y-20 E1.5 F1200",
+    "G1 X-140 Y20 E1.5",
     "G1 X-100 Y20 E1.5",
-    "G1 X-60 Y20 E1.5",
-    "G1 X-60 Y-20 E1.5",
     "G1 X-100 Y-20 E1.5",
-    "G1 X-100 Y0 E0.8",               # 12
-    "G1 X-60 Y0 E1.5",                # 13
+    "G1 X-140 Y-20 E1.5",
+    "G1 X-140 Y0 E0.8",               # 12
+    "G1 X-100 Y0 E1.5",               # 13
 ]
 BARRIER_LINE, DWELL_LINE = 9, 17
 #: the UR10's program printed alone: the barrier line is a plain comment (same line numbers, same motion)
