@@ -519,15 +519,12 @@ class MotionPlanner:
 
 def _feed_time(item):
     """Seconds of an item at the programmed feeds (no acceleration): the
-    G-code's own time, the yardstick the planned layers are scaled by."""
+    G-code's own time (:func:`ambots.gcode.summarize`), the yardstick the
+    planned layers are scaled by."""
     if isinstance(item, Pause):
         return item.seconds
-    t = 0.0
-    for s in item.segments:
-        if s.feedrate > 0:
-            L = float(np.linalg.norm(np.subtract(s.end, s.start)))
-            t += (L or abs(s.e)) * 60.0 / s.feedrate
-    return t
+    from ambots.gcode import summarize
+    return summarize(item.segments)["print_time_s"]
 
 
 def estimate_time(text, arm, cell, max_layers=6, path="<program>"):
