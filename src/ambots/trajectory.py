@@ -64,7 +64,7 @@ from ambots.protocol import ArmState
 from ambots.units import MM
 
 __all__ = ["DEFAULT_SAMPLE_PERIOD", "ACCEL_SHARE", "DriverSpec", "driver_spec", "joint_limits",
-           "finite_differences", "retime", "knot_slopes", "segment_bounds", "hermite", "Spline", "smooth", "SplineTiming", "Motion",
+           "finite_differences", "retime", "profile_durations", "knot_slopes", "segment_bounds", "hermite", "Spline", "smooth", "SplineTiming", "Motion",
            "stop_at_line_end", "stop_now", "Segment", "Chunk", "Stream"]
 
 #: s between the points of a trajectory for a controller whose profile names no ``sample_period``
@@ -391,6 +391,60 @@ def _stretch(T, D, moving, stop, vmax, amax, max_iter, pace=None):
     return T
 
 
+def profile_durations(T, D, moving, stop, vmax, amax, pace=None):
+    """Interval durations (K-1,) of a look-ahead velocity profile along the
+    waypoints: the first guess of :func:`smooth`, as a printer firmware's
+    planner times its moves.
+
+    Along the joint-space path (interval k of length ``l_k = |D_k|``, unit
+    direction ``u_k``) the path speed is capped per interval by the joint
+    speeds (``min_j vmax_j / |u_kj|``) and, where ``pace`` (K-1,) is finite,
+    by the feedrate (``l_k / pace_k``), and changes at most at
+    ``a_k = min_j amax_j / |u_kj|``.  The speed at each knot is the largest
+    that a forward and a backward pass allow (0 where ``stop`` (K,) is set
+    and next to an interval without motion); each interval then takes the
+    time of its trapezoid (accelerate, cruise, decelerate).  Where the
+    acceleration is constant the cubic through knots at these times is
+    that parabola, so :func:`_stretch` has little left to do.  Intervals
+    without motion keep their duration ``T`` (K-1,)."""
+    T = np.asarray(T, float)
+    D = np.asarray(D, float)
+    K1 = len(T)
+    if K1 == 0:
+        return T.copy()
+    ell = np.linalg.norm(D, axis=1)
+    mv = np.asarray(moving, bool) & (ell > 0)
+    u = np.abs(D) / np.where(mv, ell, 1.0)[:, None]
+    with np.errstate(divide="ignore"):
+        acc = np.where(mv, np.min(np.where(u > 0, amax[None, :] / np.where(u > 0, u, 1.0), np.inf), axis=1), np.inf)
+        cap = np.where(mv, np.min(np.where(u > 0, vmax[None, :] / np.where(u > 0, u, 1.0), np.inf), axis=1), 0.0)
+    if pace is not None:
+        pace = np.asarray(pace, float)
+        fed = mv & np.isfinite(pace) & (pace > 0)
+        cap = np.where(fed, np.minimum(cap, ell / np.where(fed, pace, 1.0)), cap)
+    w = np.zeros(K1 + 1)                          # path speed at the knots
+    w[1:-1] = np.minimum(cap[:-1], cap[1:])
+    still = np.asarray(stop, bool).copy()
+    still[:-1] |= ~mv
+    still[1:] |= ~mv
+    w[still] = 0.0
+    for k in range(K1):                           # forward: reachable from the knot before
+        if mv[k]:
+            w[k + 1] = min(w[k + 1], math.sqrt(w[k] ** 2 + 2.0 * acc[k] * ell[k]))
+    for k in range(K1 - 1, -1, -1):               # backward: able to slow down for the next
+        if mv[k]:
+            w[k] = min(w[k], math.sqrt(w[k + 1] ** 2 + 2.0 * acc[k] * ell[k]))
+    a = np.where(mv, acc, 1.0)
+    w0, w1 = w[:-1], w[1:]
+    peak = np.sqrt(np.maximum((2.0 * a * ell + w0 ** 2 + w1 ** 2) / 2.0, 0.0))
+    c = np.where(mv, np.maximum(cap, 1e-12), 1.0)
+    triangle = (2.0 * peak - w0 - w1) / a
+    cruise = ((c - w0) + (c - w1)) / a + np.maximum(ell - (c * c - w0 * w0) / (2 * a) - (c * c - w1 * w1) / (2 * a),
+                                                    0.0) / c
+    out = np.where(peak <= c, triangle, cruise)
+    return np.where(mv, np.maximum(out, 1e-9), T)
+
+
 def smooth(t, Q, vmax, amax, E=None, tip=None, tolerance=1e-4, line=None, joint_tolerance=1e-3,
            max_iter=100):
     """A block's waypoints ``Q`` (K, n) planned at times ``t`` (K,) ->
@@ -416,26 +470,27 @@ def smooth(t, Q, vmax, amax, E=None, tip=None, tolerance=1e-4, line=None, joint_
     Q = np.asarray(Q, float)
     vmax, amax = np.asarray(vmax, float), np.asarray(amax, float)
     t_feed = np.asarray(t, float)
-    t = retime(t, Q, amax)                       # a first guess within the measure
-    last, grp = _groups(t)
-    tu, Qu = t[last], Q[last]
+    last, grp = _groups(t_feed)
+    tu, Qu = t_feed[last], Q[last]
     Eu = None if E is None else np.asarray(E, float)[last]
     if len(tu) < 2:
-        return t.copy(), Spline(tu, Qu, np.zeros_like(Qu), Eu, last)
-    T = np.diff(tu)
+        return t_feed.copy(), Spline(tu, Qu, np.zeros_like(Qu), Eu, last)
+    T_feed = np.diff(tu)
     D = np.diff(Qu, axis=0)
     moving = np.any(D != 0, axis=1)
-    cart = np.zeros(len(T), bool) if line is None or tip is None else np.asarray(line, bool)[last[1:]]
+    cart = np.zeros(len(T_feed), bool) if line is None or tip is None else np.asarray(line, bool)[last[1:]]
     limit = np.where(cart, tolerance, joint_tolerance)
     # a segment of a straight move takes at least the duration its feedrate gives
     # (the waypoints' times as planned): its nozzle never runs faster than that
-    pace = np.where(cart & moving, np.diff(t_feed[last]), np.inf)
+    pace = np.where(cart & moving, T_feed, np.inf)
     pace = np.where(pace > 0, pace, np.inf)
     stop = np.zeros(len(tu), bool)
     stop[0] = stop[-1] = True
     stop[1:-1] = ~moving[:-1] | ~moving[1:]
     while True:
-        T = _stretch(T, D, moving, stop, vmax, amax, max_iter, pace)
+        # a first guess from a look-ahead profile, then exactly within the limits
+        T = _stretch(profile_durations(T_feed, D, moving, stop, vmax, amax, pace), D, moving, stop, vmax, amax,
+                     max_iter, pace)
         m = knot_slopes(T, D, stop)
         off = np.nonzero(moving & (_deviation(tip, Qu, T, m, cart) > limit) & ~(stop[:-1] & stop[1:]))[0]
         if not len(off):

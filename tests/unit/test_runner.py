@@ -450,8 +450,11 @@ def test_send_position_reports_the_nozzle(arm, cell, planner):
     np.testing.assert_allclose(st.position, want, atol=1e-3)
     assert st.state is ArmState.IDLE and st.robot == r.id
     # mid-print: where the last reached waypoint is
+    ref = new_runner(arm, cell, planner)       # how long the program takes
+    load_and_start(ref)
+    run(ref)
     load_and_start(r)
-    r.advance(12.0)
+    r.advance(0.6 * ref.stats.done_s)
     r.handle(SendPosition(2))                  # A3 R2 reaching this arm: report for arm 2
     st = messages(r, Status)[-1]
     np.testing.assert_allclose(st.position, r.nozzle_mm(), atol=1e-3)
