@@ -94,7 +94,7 @@ demo: setup
 	  || { tail -30 "$(DEMO_OUT)/launch.log"; echo "roslaunch failed: whole log in $(DEMO_OUT)/launch.log"; }
 	@echo; $(PY) -m ambots summary --capture "$(DEMO_OUT)"
 
-# any model, the same way: make print MODEL=path [CELL=...] [MODE=...] [SLICER=...] [SPEED=max] OUT=dir
+# any model, the same way: make print MODEL=path [CELL=...] [MODE=...] [SLICER=...] [SPEED=max] [ARMS=a,b] OUT=dir
 MODE ?= concurrent
 SLICER ?= builtin
 SPEED ?= max
@@ -103,7 +103,7 @@ print: setup
 	@mkdir -p "$(OUT)"
 	@echo "make print: $(MODEL) headless; log in $(OUT)/launch.log"
 	@$(ROSENV) roslaunch ambots demo.launch out:="$(abspath $(OUT))" model:="$(abspath $(MODEL))" \
-	  mode:=$(MODE) slicer:=$(SLICER) speed:=$(SPEED) $(if $(CELL),cell:="$(abspath $(CELL))") \
+	  mode:=$(MODE) slicer:=$(SLICER) speed:=$(SPEED) $(if $(CELL),cell:="$(abspath $(CELL))") $(if $(ARMS),arms:="$(ARMS)") \
 	  > "$(OUT)/launch.log" 2>&1 || { tail -30 "$(OUT)/launch.log"; echo "roslaunch failed: whole log in $(OUT)/launch.log"; }
 	@echo; $(PY) -m ambots summary --capture "$(OUT)"
 

@@ -148,7 +148,7 @@ class _Writer:
     """Emits canonical G-code for runs of segments, inserting a retracted
     travel wherever a run does not start where the nozzle is."""
 
-    def __init__(self, retract_mm=0.8, retract_feed=2100.0, travel_feed=9000.0, short_travel_mm=2.0):
+    def __init__(self, retract_mm=0.8, retract_feed=2100.0, travel_feed=9000.0, short_travel_mm=2.0, hop_mm=0.0):
         self.lines = []
         self.pos = None
         #: the nozzle was sent elsewhere by a directive (A7 to a park position)
@@ -159,6 +159,10 @@ class _Writer:
         #: travels shorter than this within a layer are not retracted or lifted
         #: (the slicers' ``retract_before_travel``)
         self.short_travel_mm = short_travel_mm
+        #: lift during a retracted travel (the slicers' ``z_hop``; 0 as the
+        #: built-in slicer's default: two more moves from rest to rest per travel
+        #: under the one timing law, about 0.1 s each)
+        self.hop_mm = hop_mm
 
     def emit(self, line):
         self.lines.append(line)
@@ -178,10 +182,14 @@ class _Writer:
             self.emit("G0 X%.3f Y%.3f F%.0f" % (p[0], p[1], feed or self.travel_feed))
         elif self.pos is not None:
             self.emit("G1 E-%.5f F%.0f" % (self.retract_mm, self.retract_feed))
-            lift = max(self.pos[2], p[2]) + 0.4        # clear what was just printed
-            self.emit("G0 Z%.3f F%.0f" % (lift, feed or self.travel_feed))
-            self.emit("G0 X%.3f Y%.3f F%.0f" % (p[0], p[1], feed or self.travel_feed))
-            self.emit("G0 Z%.3f" % p[2])
+            if self.hop_mm > 0 or abs(self.pos[2] - p[2]) > 1e-6:
+                lift = max(self.pos[2], p[2]) + self.hop_mm        # clear what was printed
+                self.emit("G0 Z%.3f F%.0f" % (lift, feed or self.travel_feed))
+                self.emit("G0 X%.3f Y%.3f F%.0f" % (p[0], p[1], feed or self.travel_feed))
+                if lift != p[2]:
+                    self.emit("G0 Z%.3f" % p[2])
+            else:
+                self.emit("G0 X%.3f Y%.3f F%.0f" % (p[0], p[1], feed or self.travel_feed))
             self.emit("G1 E%.5f F%.0f" % (self.retract_mm, self.retract_feed))
         else:
             self.emit("G0 X%.3f Y%.3f Z%.3f F%.0f" % (p[0], p[1], p[2], feed or self.travel_feed))
@@ -238,7 +246,7 @@ def _distance_to_planes(points, planes):
     return points @ normals.T - offs
 
 
-def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=None):
+def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=None, idle=()):
     """Build every arm's program.
 
     Parameters
@@ -253,17 +261,21 @@ def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=No
         from the arms' real geometry in the poses they print these parts
         in, :func:`seam_zones_for`
     park : optional {arm name: (x, y, z) mm} overriding the park positions
+    idle : arms of the cell without work in this job: a one-arm job (or a
+        sequential one) sends them to their park positions first (A7), as
+        sequential mode does with the arms that wait for their turn
 
     Returns {arm name: :class:`ArmProgram`}, in the parts' order.
     """
     if mode not in ("concurrent", "sequential"):
         raise ValueError("mode must be 'concurrent' or 'sequential', got %r" % mode)
     arms = [p.arm for p in parts]
-    park = park or park_positions_mm(cell, arms)
+    idle = [a for a in idle if a.name not in {b.name for b in arms}]
+    park = park or park_positions_mm(cell, arms + idle)
     read = {a.name: _read_layers(sliced[a.name], "%s.gcode" % a.name) for a in arms}
     n_layers = max([max(layers) + 1 for _, layers in read.values() if layers] or [0])
-    if mode == "sequential":
-        return _sequential(arms, read, park, n_layers)
+    if mode == "sequential" or (len(arms) == 1 and idle):
+        return _sequential(arms, read, park, n_layers, idle, mode)
     planes = seam_planes(parts)
     if zone_mm is None:
         zones = seam_zones_for(cell, arms, parts)
@@ -364,15 +376,15 @@ def _finish(w, arm, park):
     w.park(arm, park[arm.name])
 
 
-def _sequential(arms, read, park, n_layers):
+def _sequential(arms, read, park, n_layers, idle=(), mode="sequential"):
     programs = {}
     for i, arm in enumerate(arms):
         removed, layers = read[arm.name]
         w = _Writer()
-        for line in _header(arm, "sequential"):
+        for line in _header(arm, mode):
             w.emit(line)
         if i == 0:     # the first arm moves every other arm out of the way
-            for other in arms[1:]:
+            for other in list(arms[1:]) + list(idle):
                 x, y, z = park[other.name]
                 w.emit(directive(MoveTo(other.id, round(float(x), 3), round(float(y), 3), round(float(z), 3))))
         for k in sorted(layers):
@@ -382,7 +394,7 @@ def _sequential(arms, read, park, n_layers):
         _finish(w, arm, park)
         if i + 1 < len(arms):
             w.emit(directive(Start(arms[i + 1].id)))
-        programs[arm.name] = ArmProgram(arm, "sequential", w.lines, removed, len(layers), 1, start_first=(i == 0))
+        programs[arm.name] = ArmProgram(arm, mode, w.lines, removed, len(layers), 1, start_first=(i == 0))
     return programs
 
 
@@ -520,6 +532,12 @@ def _seg_time(segs):
     return t
 
 
+#: what a piece of path costs besides its time at the feedrate when the bands
+#: cut it out of its neighbours (s): a retracted travel to it, and the ramps
+#: from rest and to rest at its ends under the one timing law (about 0.3 s on
+#: the demo's layers: :mod:`ambots.estimate`'s per-move model for the UR10
+#: and the Kinova, 3 mm travels and 7-14 mm pieces)
+PIECE_S = 0.3
 #: the estimated makespans (s) and k of the last banded programs, by kind of band edges, for inspection
 _last_bands = None
 #: balanced band edges are used when their estimate is below this share of the equal widths' estimate
@@ -582,18 +600,26 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=
             mid = P0[seg] + frac[:, None] * (P1 - P0)[seg]
             d = (_distance_to_planes(mid, planes[a.name]).min(axis=1) if planes[a.name]
                  else np.full(len(seg), np.inf))
-            stats[a.name, layer] = (d, dur[seg] / pieces[seg])
+            # a piece follows on from the one before (no travel between them): same
+            # segment, or the segment before ends where it starts
+            joined = np.zeros(len(segs), bool)
+            joined[1:] = np.all(P1[:-1] == P0[1:], axis=1)
+            follows = np.ones(len(seg), bool)
+            follows[0] = False
+            first_piece = np.cumsum(pieces) - pieces
+            follows[first_piece] = joined
+            stats[a.name, layer] = (d, dur[seg] / pieces[seg], follows)
     # each arm's reach from its nearest seam
     far = {}
     for a in arms:
-        ds = [float(np.max(d[np.isfinite(d)])) for (n, _), (d, _) in stats.items()
+        ds = [float(np.max(d[np.isfinite(d)])) for (n, _), (d, _, _) in stats.items()
               if n == a.name and np.isfinite(d).any()]
         far[a.name] = max(ds or [0.0])
     work = {}
     for a in arms:
         ds = [stats[a.name, layer] for layer in range(n_layers) if (a.name, layer) in stats]
-        d = np.concatenate([x for x, _ in ds]) if ds else np.zeros(0)
-        dur = np.concatenate([y for _, y in ds]) if ds else np.zeros(0)
+        d = np.concatenate([x for x, _, _ in ds]) if ds else np.zeros(0)
+        dur = np.concatenate([y for _, y, _ in ds]) if ds else np.zeros(0)
         work[a.name] = (d[np.isfinite(d)], dur[np.isfinite(d)])
 
     def uniform(k):
@@ -610,9 +636,13 @@ def _banded(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=
             for a in arms:
                 if (a.name, layer) not in stats:
                     continue
-                d, dur = stats[a.name, layer]
+                d, dur, follows = stats[a.name, layer]
                 band = np.clip(np.searchsorted(t[a.name], d, side="right") - 1, 0, k - 1)
-                per_band = np.bincount(band, weights=dur, minlength=k)
+                # every piece of path a band cuts out starts and ends at rest, with a travel
+                fresh = ~follows
+                fresh[1:] |= band[1:] != band[:-1]
+                per_band = (np.bincount(band, weights=dur, minlength=k)
+                            + PIECE_S * np.bincount(band, weights=fresh, minlength=k))
                 phases = np.array([_phase_of(b, colour[a.name], layer, k) for b in range(k)])
                 np.maximum.at(phase_t, phases, per_band)
             est += phase_t.sum() + k * 0.5          # a barrier costs about half a second

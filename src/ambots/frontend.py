@@ -382,12 +382,14 @@ class Menu:
     """
 
     def __init__(self, link, cell, model=None, out=None, slicer="builtin", mode="concurrent",
-                 seam="straight", input=input, output=functools.partial(print, flush=True),
+                 seam="straight", arms=None, input=input, output=functools.partial(print, flush=True),
                  error=None, clock=time.monotonic, timeout=None, ack_timeout=DEFAULT_ACK_TIMEOUT_S,
                  poll_period=0.1, error_grace=1.0):
         self.link, self.cell = link, cell
         self.model, self.out = model, out
         self.slicer, self.mode, self.seam = slicer, mode, seam
+        #: the arms to print with (None: the planner chooses, see ambots.job.run_job)
+        self.arms = arms
         self.input, self.say = input, output
         self.complain = error or output
         self.clock, self.timeout = clock, timeout
@@ -494,11 +496,14 @@ class Menu:
         from ambots.job import run_job, write_job
         self.say("slicing %s (cell %s, %s slicer, %s mode) ..." % (path, self.cell.name, self.slicer, self.mode))
         t0 = time.monotonic()
-        job = run_job(path, self.cell, slicer=self.slicer, mode=self.mode, seam=self.seam)
+        job = run_job(path, self.cell, self.arms, slicer=self.slicer, mode=self.mode, seam=self.seam)
         out = self.out or os.path.join("out", os.path.splitext(os.path.basename(path))[0] or "model")
         summary = write_job(job, out)
         self.job, self.programs, self.directory, self.sent = job, dict(job.programs), out, False
         self.print_times = {name: a["print_time_s"] for name, a in summary["arms"].items()}
+        estimate = (summary.get("plan") or {}).get("makespan_estimate_s")
+        if estimate:                 # the one timing law's makespan: longer than the feeds' times
+            self.print_times["makespan"] = estimate
         self.say("sliced in %.1f s: model %.0f mm3 -> %s" % (time.monotonic() - t0, summary["model_volume_mm3"],
                                                               ", ".join(self.programs)))
         self.say("  %-8s %4s %10s %7s %7s %11s %9s %s" % ("arm", "id", "part mm3", "layers", "lines",
@@ -508,11 +513,9 @@ class Menu:
             self.say("  %-8s R%-3d %10.0f %7d %7d %11.1f %9.0f %s" % (
                 name, a["id"], a["part_volume_mm3"], a["layers"], len(p.lines), a["extruded_filament_mm"],
                 a["print_time_s"], "by A1" if p.start_first else "after another arm"))
-        alone = summary.get("one_arm_estimate_s")
-        if alone:
-            longest = max(a["print_time_s"] for a in summary["arms"].values())
-            self.say("  one arm alone would take about %.0f s (the one timing law on a sample of the layers); "
-                     "the arms' G-code here, at the programmed feeds: longest %.0f s" % (alone, longest))
+        from ambots.job import plan_lines
+        for line in plan_lines(summary.get("plan")):
+            self.say("  " + line)
         self.say("wrote %s" % ", ".join(os.path.join(out, n) for n in
                                        [a + ".gcode" for a in self.programs] + ["job.json"]))
         return True
@@ -689,6 +692,8 @@ def build_parser(prog="front_end"):
     p.add_argument("--cell", help="cell YAML (default: config/cells/kinova_ur10.yaml)")
     p.add_argument("--slicer", choices=("builtin", "prusa"), default="builtin")
     p.add_argument("--mode", choices=("concurrent", "sequential"), default="concurrent")
+    p.add_argument("--arms", help="comma-separated arms to print with, e.g. ur10 (default: the planner chooses "
+                                  "the fastest of the cell's arms together and each arm alone)")
     p.add_argument("--out", help="output folder of the programs (default: out/<model stem>)")
     p.add_argument("--print", dest="print_job", action="store_true",
                    help="run one whole job without the menu and exit with its status")
@@ -703,5 +708,6 @@ def build_parser(prog="front_end"):
 
 def menu_from_args(args, link, cell, **kw):
     """A :class:`Menu` configured by :func:`build_parser`'s ``args``."""
-    return Menu(link, cell, model=args.model, out=args.out, slicer=args.slicer, mode=args.mode,
+    arms = [cell.arm(n.strip()) for n in args.arms.split(",")] if getattr(args, "arms", None) else None
+    return Menu(link, cell, model=args.model, out=args.out, slicer=args.slicer, mode=args.mode, arms=arms,
                 timeout=None if args.print_job else args.timeout, **kw)

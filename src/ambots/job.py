@@ -17,8 +17,26 @@ from ambots.units import m_to_mm
 #: print at the same time (they must stay ~90 mm apart, see coordinate.py)
 DEMO_MODEL = "config/models/demo_block.stl"
 
-__all__ = ["DEMO_MODEL", "Job", "prepare_model", "split", "slice_parts", "estimate_one_arm", "coordinate",
-           "run_job", "write_job"]
+__all__ = ["DEMO_MODEL", "Job", "Candidate", "prepare_model", "split", "slice_parts", "coordinate", "run_job",
+           "write_job", "plan_lines", "TIE_SHARE"]
+
+
+@dataclass
+class Candidate:
+    """One plan the job considered: ``arms`` (names) printing the model
+    ``how`` ("concurrent", "sequential" or "alone"), its makespan timed by
+    the one timing law (:mod:`ambots.estimate`), s, or None with ``note``
+    saying why it is not possible."""
+    arms: List[str]
+    how: str
+    makespan_s: float = None
+    note: str = None
+    programs: dict = field(default=None, repr=False)   #: {arm name: ArmProgram}, when built
+
+    def as_dict(self):
+        return {"arms": list(self.arms), "how": self.how,
+                "makespan_s": None if self.makespan_s is None else round(float(self.makespan_s), 1),
+                "note": self.note}
 
 
 @dataclass
@@ -34,19 +52,45 @@ class Job:
     parts: list = field(default_factory=list)      #: partition.Part per arm
     sliced: Dict[str, str] = field(default_factory=dict)
     programs: dict = field(default_factory=dict)   #: arm name -> coordinate.ArmProgram
-    #: the best arm printing the whole model alone, timed by the one timing law
-    #: on a sample of the layers (:func:`estimate_one_arm`), s; None for a one-arm
-    #: job or when no arm reaches the whole model
-    one_arm_estimate_s: float = None
+    #: the plans considered (:class:`Candidate`), the chosen one first
+    candidates: list = field(default_factory=list)
+    #: True when the arm set was forced (``--arms``): no other plan was considered
+    forced: bool = False
+
+    @property
+    def chosen(self):
+        return self.candidates[0] if self.candidates else None
+
+    @property
+    def one_arm_estimate_s(self):
+        """The best arm printing the whole model alone, s (None if no
+        candidate has one arm, or none of them is possible)."""
+        alone = [c.makespan_s for c in self.candidates if len(c.arms) == 1 and c.makespan_s is not None]
+        return min(alone) if alone else None
+
+    def plan_summary(self):
+        """The choice, for job.json, report.json and the summaries."""
+        chosen = self.chosen
+        alone = self.one_arm_estimate_s
+        return {"arms": list(chosen.arms) if chosen else [a.name for a in self.arms],
+                "how": chosen.how if chosen else self.mode,
+                "makespan_estimate_s": None if chosen is None or chosen.makespan_s is None
+                else round(float(chosen.makespan_s), 1),
+                "best_single_arm_s": None if alone is None else round(float(alone), 1),
+                "speedup": None if not (chosen and chosen.makespan_s and alone) else round(alone / chosen.makespan_s, 3),
+                "forced": self.forced,
+                "candidates": [c.as_dict() for c in self.candidates]}
 
     def summary(self):
         """Per-arm figures of the programs (``python -m ambots info`` keys)."""
         from ambots.gcode import parse_gcode_text, summarize
         out = {"model": self.model_path, "cell": self.cell.name, "mode": self.mode, "slicer": self.slicer,
                "model_volume_mm3": float(self.mesh.volume) if self.mesh is not None else None,
-               "one_arm_estimate_s": self.one_arm_estimate_s, "arms": {}}
+               "one_arm_estimate_s": self.one_arm_estimate_s, "plan": self.plan_summary(), "arms": {}}
         for part in self.parts:
             name = part.arm.name
+            if name not in self.programs:
+                continue
             s = summarize(parse_gcode_text(self.programs[name].text, name + ".gcode"))
             out["arms"][name] = {
                 "id": part.arm.id, "part_volume_mm3": part.volume, "layers": s["layers"],
@@ -55,6 +99,43 @@ class Job:
                 "print_time_s": s["print_time_s"], "a_commands": s["a_commands"],
                 "stripped_lines": [{"line": l, "text": t} for l, t in self.programs[name].removed]}
         return out
+
+
+def _how(arms, how):
+    if len(arms) == 1:
+        return "%s alone" % arms[0]
+    return "%d arms %s (%s)" % (len(arms), how, ", ".join(arms))
+
+
+def plan_lines(plan, brief=False):
+    """What the planner chose, for people (the menu's slice summary, ``slice``,
+    ``plan`` and, ``brief``: two lines, the run summaries): ``plan`` as
+    :meth:`Job.plan_summary` gives it (job.json's "plan")."""
+    if not plan or not plan.get("candidates"):
+        return []
+    chosen, rest = plan["candidates"][0], plan["candidates"][1:]
+    fmt = lambda t: "not timed" if t is None else "%s s" % format(round(t), ",")
+    head = "plan: %s: %s" % (_how(chosen["arms"], chosen["how"]), fmt(chosen["makespan_s"]))
+    if plan.get("forced"):
+        head += " (arms given: no other plan considered)"
+    lines = [head]
+    singles = [c for c in plan["candidates"] if len(c["arms"]) == 1 and c["makespan_s"] is not None]
+    if len(chosen["arms"]) > 1 and singles:
+        best = min(singles, key=lambda c: c["makespan_s"])
+        lines[0] += "; best single arm (%s): %s; speed-up %.2fx" % (
+            best["arms"][0], fmt(best["makespan_s"]), best["makespan_s"] / chosen["makespan_s"])
+    if brief:
+        if rest:
+            lines.append("  also considered: " + "; ".join("%s %s" % (_how(c["arms"], c["how"]), fmt(c["makespan_s"]))
+                                                      for c in rest))
+        return lines
+    for c in rest:
+        why = " (%s)" % c["note"] if c.get("note") else ""
+        lines.append("  also considered: %s: %s%s" % (_how(c["arms"], c["how"]), fmt(c["makespan_s"]), why))
+    if rest:
+        lines.append("  (makespans by the one timing law, ambots.estimate; fewer arms unless more are "
+                     "faster by more than %d %%)" % round(100 * TIE_SHARE))
+    return lines
 
 
 def prepare_model(path, cell, scale=1.0):
@@ -83,43 +164,110 @@ def slice_parts(parts, slicer="builtin", settings=None):
     return {p.arm.name: slice_mesh(p.to_trimesh(), settings, backend=slicer) for p in parts if not p.empty}
 
 
-def estimate_one_arm(mesh, cell, arms, slicer="builtin", settings=None):
-    """The whole model printed by one arm alone -- what the split is
-    measured against: the best of ``arms``, each timed by the firmware's one
-    timing law on a sample of the layers (:func:`ambots.motion.estimate_time`),
-    s; None if no arm reaches the whole model."""
-    from ambots.motion import estimate_time
-    from ambots.slicer import slice_mesh
-    text = slice_mesh(mesh, settings, backend=slicer)
-    times = [t for t in (estimate_time(text, arm, cell, path="whole model") for arm in arms) if t is not None]
-    return min(times) if times else None
-
-
-def coordinate(sliced, parts, cell, mode="concurrent", **kw):
-    """Step 4: per-arm programs with A-series coordination."""
+def coordinate(sliced, parts, cell, mode="concurrent", idle=(), **kw):
+    """Step 4: per-arm programs with A-series coordination (``idle``: the
+    cell's arms without work, parked first by a one-arm job)."""
     from ambots.coordinate import build_programs
     parts = [p for p in parts if p.arm.name in sliced]
-    return build_programs(sliced, parts, cell, mode=mode, **kw)
+    return build_programs(sliced, parts, cell, mode=mode, idle=idle, **kw)
+
+
+#: more arms are chosen only when their plan is faster than the fewer arms' by
+#: more than this share (the estimate's spread against the simulation: 1-2 %)
+TIE_SHARE = 0.03
+
+
+def _timed(programs, cell):
+    """Makespan of programs by the one timing law (s), or None and why not."""
+    from ambots.estimate import estimate_programs
+    from ambots.errors import AmbotsError
+    try:
+        est = estimate_programs(programs, cell)
+    except AmbotsError as exc:
+        return None, str(exc)
+    if est["errors"]:
+        return None, "; ".join(est["errors"].values())
+    return est["makespan_s"], None
+
+
+def _alone(mesh, cell, arm, text, idle, settings):
+    """The whole model by ``arm`` alone: (parts, sliced, programs, Candidate)."""
+    from ambots.errors import AmbotsError
+    try:
+        parts = split(mesh, cell, [arm], settings=settings)
+    except AmbotsError as exc:
+        return None, None, None, Candidate([arm.name], "alone", None, str(exc))
+    sliced = {arm.name: text}
+    programs = coordinate(sliced, parts, cell, "concurrent", idle=idle)
+    t, why = _timed(programs, cell)
+    return parts, sliced, programs, Candidate([arm.name], "alone", t, why, programs)
 
 
 def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", seam="straight",
-            scale=1.0, settings=None):
-    """All four steps; returns the :class:`Job`."""
+            scale=1.0, settings=None, choose=None):
+    """All four steps; returns the :class:`Job`.
+
+    ``arms``: the arms to print with (default: all of the cell's).  With
+    ``choose`` (default: when ``arms`` is not given, in concurrent mode) the planner also
+    considers every arm alone: each plan is timed by the one timing law
+    (:func:`ambots.estimate.estimate_programs`) and the fastest one is
+    chosen, fewer arms unless more are faster by more than ``TIE_SHARE``.
+    Without it the given arms print together (``job.forced``)."""
+    if choose is None:                   # sequential mode is the original's way: the arms asked for, in turn
+        choose = arms is None and mode == "concurrent"
     arms = list(cell.arms if arms is None else arms)
-    job = Job(model_path, cell, arms, slicer, mode, seam)
+    job = Job(model_path, cell, arms, slicer, mode, seam, forced=not choose)
     job.mesh = prepare_model(model_path, cell, scale)
-    job.parts = split(job.mesh, cell, arms, seam, settings)
-    job.sliced = slice_parts(job.parts, slicer, settings)
-    job.programs = coordinate(job.sliced, job.parts, cell, mode)
+    idle = [a for a in cell.arms if a.name not in {b.name for b in arms}]
+    plans = []
     if len(arms) > 1:
-        job.one_arm_estimate_s = estimate_one_arm(job.mesh, cell, arms, slicer, settings)
+        parts = split(job.mesh, cell, arms, seam, settings)
+        sliced = slice_parts(parts, slicer, settings)
+        programs = coordinate(sliced, parts, cell, mode, idle=idle)
+        t, why = _timed(programs, cell)
+        plans.append((parts, sliced, programs, Candidate([a.name for a in arms], mode, t, why, programs)))
+    if len(arms) == 1:                   # one arm: its plan (an arm that cannot reach the model is an error)
+        parts = split(job.mesh, cell, arms, seam, settings)
+        sliced = slice_parts(parts, slicer, settings)
+        programs = coordinate(sliced, parts, cell, mode, idle=idle)
+        t, why = _timed(programs, cell)
+        plans.append((parts, sliced, programs, Candidate([arms[0].name], "alone", t, why, programs)))
+    elif choose:                         # each arm alone, on the same G-code of the whole model
+        from ambots.slicer import slice_mesh
+        text = slice_mesh(job.mesh, settings, backend=slicer)
+        for arm in arms:
+            plans.append(_alone(job.mesh, cell, arm, text, [a for a in cell.arms if a.name != arm.name], settings))
+    best = _best([p[3] for p in plans]) if choose else 0
+    if best is None:                     # nothing could be timed: the arms asked for, as before
+        best = 0
+    job.parts, job.sliced, job.programs = plans[best][0], plans[best][1], plans[best][2]
+    if plans[best][3].arms != [a.name for a in arms]:
+        job.arms = [cell.arm(n) for n in plans[best][3].arms]
+    job.candidates = [plans[best][3]] + [p[3] for i, p in enumerate(plans) if i != best]
     return job
+
+
+def _best(candidates):
+    """Index of the fastest candidate; fewer arms win unless more are faster
+    by more than TIE_SHARE.  None if none could be timed."""
+    timed = [(i, c) for i, c in enumerate(candidates) if c.makespan_s is not None]
+    if not timed:
+        return None
+    fastest = min(c.makespan_s for _, c in timed)
+    # among the plans within the tie share of the fastest, the one with fewest arms
+    close = [(len(c.arms), c.makespan_s, i) for i, c in timed if c.makespan_s <= fastest * (1.0 + TIE_SHARE)]
+    return min(close)[2]
 
 
 def write_job(job, out_dir):
     """Write ``<arm>.gcode`` (program), ``<arm>.stl`` (part) per arm and
     ``job.json`` (summary) into ``out_dir``; returns the summary."""
     os.makedirs(out_dir, exist_ok=True)
+    for arm in job.cell.arms:            # an earlier job's program of an arm without work now: gone
+        if arm.name not in job.programs:
+            for ext in (".gcode", ".stl"):
+                if os.path.exists(os.path.join(out_dir, arm.name + ext)):
+                    os.remove(os.path.join(out_dir, arm.name + ext))
     for part in job.parts:
         name = part.arm.name
         part.to_trimesh().export(os.path.join(out_dir, name + ".stl"))

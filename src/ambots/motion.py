@@ -42,7 +42,7 @@ from ambots.trajectory import SplineTiming, joint_limits
 from ambots.units import MM
 from ambots.workspace import down_in_base
 
-__all__ = ["Moves", "Directive", "Pause", "read_program", "Block", "MotionPlanner", "estimate_time",
+__all__ = ["Moves", "Directive", "Pause", "read_program", "Block", "MotionPlanner",
            "MotionError", "DEFAULT_TOLERANCE_MM"]
 
 #: largest distance (mm) between the nozzle and the programmed straight line
@@ -515,63 +515,3 @@ class MotionPlanner:
         return self._timed(Block(np.array([0.0, float(seconds)]), np.stack([q, q]), self.tip_world(np.stack([q, q])),
                      np.array([line, line]), np.array([layer, layer]), np.zeros(2, dtype=bool), np.zeros(2)),
                            scaled=False)
-
-
-def _feed_time(item):
-    """Seconds of an item at the programmed feeds (no acceleration): the
-    G-code's own time (:func:`ambots.gcode.summarize`), the yardstick the
-    planned layers are scaled by."""
-    if isinstance(item, Pause):
-        return item.seconds
-    from ambots.gcode import summarize
-    return summarize(item.segments)["print_time_s"]
-
-
-def estimate_time(text, arm, cell, max_layers=6, path="<program>"):
-    """Seconds ``arm`` needs to execute the G-code ``text`` (bed frame) alone,
-    timed by the one timing law: a :class:`MotionPlanner` plans every move
-    of up to ``max_layers`` layers spread evenly over the print (the first
-    and the last among them).  Each planned layer gives the ratio of its
-    planned time to its time at the programmed feeds; every layer takes its
-    time at the feeds times that ratio, interpolated linearly between the
-    planned layers (layers differ in length -- solid, infill -- much more
-    than in that ratio).  Dwells count as written; directives are ignored
-    (no other arm to wait for).  None when a move of a planned layer is out
-    of the arm's reach."""
-    items, _, _ = read_program(text, path)
-    layers, layer = {}, 0
-    for it in items:
-        if isinstance(it, Moves):
-            layer = max(int(it.segments[0].layer), 0)
-        if isinstance(it, (Moves, Pause)):
-            layers.setdefault(layer, []).append(it)
-    if not layers:
-        return 0.0
-    order = sorted(layers)
-    feed = np.array([sum(_feed_time(it) for it in layers[lay]) for lay in order])
-    pick = sorted({order[int(round(i))] for i in np.linspace(0, len(order) - 1, min(max_layers, len(order)))})
-    planner = MotionPlanner(arm, cell)
-    q = np.asarray(arm.profile.home, dtype=float)
-    # from home to where the print starts: once, not part of any layer's time
-    first = layers[order[0]][0]
-    lead = 0.0
-    if isinstance(first, Moves):
-        block = planner.joint_move_to(planner.bed_mm_to_base(np.array([first.segments[0].start]))[0], q)
-        if block.error is not None:
-            return None
-        lead, q = block.duration, block.Q[-1]
-    ratios = []
-    for lay in pick:
-        t = 0.0
-        for it in layers[lay]:
-            if isinstance(it, Pause):
-                t += it.seconds
-                continue
-            block = planner.plan_moves(it.segments, q)
-            if block.error is not None:
-                return None
-            t += block.duration
-            q = block.Q[-1]
-        f = feed[order.index(lay)]
-        ratios.append(t / f if f > 0 else 1.0)
-    return lead + float((feed * np.interp(order, pick, ratios)).sum())

@@ -277,8 +277,15 @@ def test_short_travels_are_not_retracted():
     w.travel_to((0.0, 0.0, 0.2))
     w.travel_to((0.5, 0.5, 0.2))            # 0.7 mm, same layer: a plain move
     assert w.lines[-1].startswith("G0 X0.500 Y0.500") and len(w.lines) == 2
-    w.travel_to((10.0, 0.5, 0.2))           # longer: retract, lift, move, lower, unretract
-    assert w.lines[2].startswith("G1 E-0.8") and w.lines[-1].startswith("G1 E0.8") and len(w.lines) == 7
+    w.travel_to((10.0, 0.5, 0.2))           # longer: retract, move, unretract (no lift by default)
+    assert w.lines[2].startswith("G1 E-0.8") and w.lines[-1].startswith("G1 E0.8") and len(w.lines) == 5
+    assert w.lines[3] == "G0 X10.000 Y0.500 F9000"
+    w.travel_to((0.0, 0.5, 0.4))            # to the next layer: up first, then across
+    assert w.lines[-3:-1] == ["G0 Z0.400 F9000", "G0 X0.000 Y0.500 F9000"]
+    h = _Writer(hop_mm=0.4)                 # with a lift: retract, lift, move, lower, unretract
+    h.travel_to((0.0, 0.0, 0.2))
+    h.travel_to((10.0, 0.5, 0.2))
+    assert [ln.split()[1][0] for ln in h.lines[1:]] == ["E", "Z", "X", "Z", "E"]
 
 
 # ------------------------------------------------------------ N arms

@@ -116,7 +116,7 @@ def cube_stl(tmp_path_factory):
 @pytest.fixture(scope="module")
 def jobs(cell, cube_stl):
     """The cube sliced once per mode (reused by the tests that do not slice)."""
-    return {mode: run_job(cube_stl, cell, mode=mode) for mode in ("concurrent", "sequential")}
+    return {mode: run_job(cube_stl, cell, list(cell.arms), mode=mode) for mode in ("concurrent", "sequential")}
 
 
 def with_job(session, job):
@@ -222,20 +222,32 @@ def test_choice_2_slices_the_model_and_writes_the_programs(cell, cube_stl, tmp_p
     s = Session(["2", "", "5"], cell, model=cube_stl, out=str(out))      # empty answer: --model
     assert s.run() == EXIT_OK and s.errors == []
     assert s.prompts[1] == "model file (STL, OBJ, PLY, 3MF; mm) [%s]: " % cube_stl
-    assert sorted(os.listdir(out)) == ["job.json", "kinova.gcode", "kinova.stl", "ur10.gcode", "ur10.stl"]
+    # a 20 mm cube lies inside the two arms' seam zone: the planner gives it to the faster arm
+    assert sorted(os.listdir(out)) == ["job.json", "ur10.gcode", "ur10.stl"]
     menu = s.menu
-    assert list(menu.programs) == ["kinova", "ur10"] and not menu.sent
+    assert list(menu.programs) == ["ur10"] and not menu.sent
     assert (out / "ur10.gcode").read_text() == menu.programs["ur10"].text
-    assert any(l.startswith("  kinova   R1 ") for l in s.lines)
-    assert "programs: kinova, ur10 in %s, not sent" % out in s.lines
+    assert any(l.startswith("  ur10     R2 ") for l in s.lines)
+    assert any(l.startswith("  plan: ur10 alone: ") for l in s.lines)
+    assert any(l.startswith("    also considered: 2 arms concurrent (kinova, ur10): ") for l in s.lines)
+    assert "programs: ur10 in %s, not sent" % out in s.lines
     assert s.link.sent == []            # slicing sends nothing
+    # the arms given (--arms): both, nothing else considered; the earlier job's files are replaced
+    s = Session(["2", "", "5"], cell, model=cube_stl, out=str(out), arms=list(cell.arms))
+    assert s.run() == EXIT_OK and s.errors == []
+    assert sorted(os.listdir(out)) == ["job.json", "kinova.gcode", "kinova.stl", "ur10.gcode", "ur10.stl"]
+    assert list(s.menu.programs) == ["kinova", "ur10"]
+    assert any("(arms given: no other plan considered)" in l for l in s.lines)
+    # and back to the planner's choice: the kinova's program of the job before is gone
+    s = Session(["2", "", "5"], cell, model=cube_stl, out=str(out))
+    assert s.run() == EXIT_OK and sorted(os.listdir(out)) == ["job.json", "ur10.gcode", "ur10.stl"]
 
 
 def test_the_default_output_folder_is_out_slash_the_model_stem(cell, cube_stl, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     s = Session(["2", "'%s'" % cube_stl, "5"], cell)        # quotes around a path are fine
     s.run()
-    assert s.errors == [] and (tmp_path / "out" / "cube20" / "kinova.gcode").is_file()
+    assert s.errors == [] and (tmp_path / "out" / "cube20" / "ur10.gcode").is_file()
 
 
 def test_choice_3_sends_one_A5_per_arm_with_the_program_as_payload(cell, jobs):
@@ -404,7 +416,7 @@ def test_print_job_exits_1_on_an_arm_error_and_on_the_timeout(cell, cube_stl, tm
     s = Session([], cell, link=link, model=cube_stl, out=str(tmp_path))
     assert s.menu.print_job() == EXIT_FAILED
     assert s.errors == ["print failed: ur10 (R2) error at G-code line 0: emergency stop"]
-    s = Session([], cell, model=cube_stl, out=str(tmp_path))
+    s = Session([], cell, model=cube_stl, out=str(tmp_path), arms=list(cell.arms))
     assert s.menu.print_job(timeout=60) == EXIT_FAILED
     assert s.errors == ["print failed: timed out after 60 s waiting for kinova (R1) silent, ur10 (R2) silent"]
 

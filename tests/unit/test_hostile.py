@@ -379,15 +379,15 @@ def test_unreachable_points_stop_the_arm_with_an_error_naming_the_line(cell, pla
 
 
 def test_an_absurdly_fast_feedrate_is_capped_by_the_joint_speed_limits(cell, planner):
-    """F1000000 runs within the joint limits, about as fast as a feedrate the
-    arm can follow.  The timing law stretches durations from the feedrate's
-    and never shortens one, so from an impossible start it is not
-    time-optimal: up to 10 % slower here (measured 7.5 %, docs/firmware.md)."""
+    """F1000000 runs within the joint limits, at least as fast as a feedrate
+    the arm can follow (the timing law's look-ahead first guess caps the
+    speed by the joints, not by an impossible feedrate: measured 1 % faster
+    than F3000; before it, 7.5 % slower)."""
     r = runner(cell, planner)
     assert run(r, HEAD + "G1 X10 Y0 Z5 F1000000\n") == [] and r.state is ArmState.DONE
     slow = runner(cell, planner)
     run(slow, HEAD + "G1 X10 Y0 Z5 F3000\n")
-    assert r.stats.print_time_s > 0 and r.stats.print_time_s <= 1.1 * slow.stats.print_time_s
+    assert r.stats.print_time_s > 0 and r.stats.print_time_s <= slow.stats.print_time_s * (1 + 1e-9)
 
 
 #: (case id, line 5, words of the refusal)
@@ -529,7 +529,7 @@ def test_self_intersecting_cubes_are_merged_and_the_job_runs(tmp_path, cell, off
     # documented behaviour: shells that overlap are united by manifold3d, with a note
     path = tmp_path / "two cubes.stl"
     path.write_bytes(_two(offset))
-    job = run_job(str(path), cell)
+    job = run_job(str(path), cell, list(cell.arms))          # both arms (a compact part: not the planner's choice)
     assert job.mesh.volume == pytest.approx(volume)
     assert any("self-intersection" in n for n in job.mesh.metadata["ambots_repairs"])
     assert sum(p.volume for p in job.parts) == pytest.approx(volume, rel=1e-6)
@@ -754,7 +754,7 @@ def test_builtin_job_with_a_nasty_file_name(tmp_path, monkeypatch, cell):
     monkeypatch.chdir(tmp_path)
     path = tmp_path / NASTY
     trimesh.creation.box((20.0, 20.0, 4.0)).export(str(path))
-    job = run_job(str(path), cell)
+    job = run_job(str(path), cell, list(cell.arms))
     summary = write_job(job, str(tmp_path / "out $(touch pwned2) ;'\""))
     assert summary["model"] == str(path) and set(summary["arms"]) == {"kinova", "ur10"}
     assert no_pwned(tmp_path)

@@ -415,39 +415,3 @@ def test_unreachable_first_move(planner, arm):
     assert b.error is not None and b.error.line == 2
     assert len(b.t) == 1 and b.duration == 0.0
     np.testing.assert_allclose(b.Q[0], home)
-
-
-def test_the_one_arm_estimate_is_the_timing_law_on_a_sample_of_the_layers(cell):
-    """estimate_time with every layer planned is the time the firmware's
-    runner takes for the same program (an independent path: the state
-    machine executing it; within 1 %: the move from home is planned a little
-    differently); with a sample of the layers it stays within 3 %
-    of that, for layers that differ (a square that grows layer by layer)."""
-    from ambots.motion import estimate_time
-    from ambots.protocol import LoadChunk, Start
-    from ambots.runner import ArmRunner
-    arm = cell.arm("ur10")
-    lines = ["G21", "G90", "M83"]
-    for layer in range(12):
-        z = 0.2 * (layer + 1)
-        half = 10.0 + 2.0 * layer
-        lines += [";LAYER_CHANGE", ";Z:%.1f" % z, "G0 X%.1f Y%.1f Z%.1f F9000" % (-half, -half, z)]
-        for x, y in ((half, -half), (half, half), (-half, half), (-half, -half)):
-            lines.append("G1 X%.1f Y%.1f E%.3f F1800" % (x, y, 0.05 * half))
-        lines += ["G1 E-0.8 F2100", "G4 P200", "G1 E0.8 F2100"]
-    text = "\n".join(lines) + "\n"
-    r = ArmRunner(arm, cell)
-    r.handle(LoadChunk(arm.id, text, chunk_id=1))
-    r.handle(Start(arm.id), now=0.0)
-    t = 0.0
-    while r.state.name not in ("DONE", "ERROR") and t < 1e5:
-        t += 5.0
-        r.advance(t)
-    assert r.state.name == "DONE"
-    full = estimate_time(text, arm, cell, max_layers=100)
-    assert full == pytest.approx(r.stats.done_s, rel=0.01)        # the lead-in from home differs a little
-    sampled = estimate_time(text, arm, cell, max_layers=4)
-    assert sampled == pytest.approx(full, rel=0.03)
-    # out of reach: no estimate
-    far = text.replace("X-10.0 Y-10.0 Z0.2", "X-5000.0 Y-10.0 Z0.2")
-    assert estimate_time(far, arm, cell) is None

@@ -37,14 +37,16 @@ def cell():
 
 @pytest.fixture(scope="module")
 def jobs(cell, tmp_path_factory):
-    """Each model run through the whole pipeline once (default cell, builtin
-    slicer, concurrent mode), from a file as a user would give it."""
+    """Each model run through the whole pipeline once (default cell, both
+    arms -- these parts are compact, so the planner alone would give each
+    to one arm --, builtin slicer, concurrent mode), from a file as a user
+    would give it."""
     folder = tmp_path_factory.mktemp("pipeline")
     out = {}
     for name in NAMES:
         path = os.path.join(str(folder), name + ".stl")
         MODELS[name]().export(path)
-        out[name] = run_job(path, cell)
+        out[name] = run_job(path, cell, list(cell.arms))
     return out
 
 

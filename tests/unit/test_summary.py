@@ -26,14 +26,32 @@ def _report(finished=True, contacts=0):
 
 
 def test_a_finished_print_says_makespan_speed_up_and_where_the_files_are(tmp_path):
-    code, out = _run(tmp_path, _report(), {"one_arm_estimate_s": 7000.0}, True, "--capture")
+    plan = {"arms": ["kinova", "ur10"], "how": "concurrent", "forced": False,
+            "candidates": [{"arms": ["kinova", "ur10"], "how": "concurrent", "makespan_s": 4010.0},
+                           {"arms": ["kinova"], "how": "alone", "makespan_s": 7500.0},
+                           {"arms": ["ur10"], "how": "alone", "makespan_s": 7000.0}]}
+    code, out = _run(tmp_path, _report(), {"plan": plan}, True, "--capture")
     assert code == 0, out
     assert out.startswith("FINISHED: m.stl on cell kinova_ur10, 2 arms, concurrent mode")
     assert "4,000 s simulated (1 h 06 min)" in out
-    assert "one arm alone 7,000 s" in out and "speed-up %.2fx" % (7000 / 4000) in out
+    assert ("plan: 2 arms concurrent (kinova, ur10): 4,010 s; best single arm (ur10): 7,000 s; speed-up %.2fx"
+            % (7000 / 4010)) in out
+    assert "also considered: kinova alone 7,500 s; ur10 alone 7,000 s" in out
     assert "contacts      0" in out and "closest approach of two arms 12.3 mm" in out
     assert str(tmp_path / "capture.png") in out and str(tmp_path / "report.json") in out
     assert len(out.splitlines()) <= 8          # short
+
+
+def test_one_arm_chosen_is_said_so(tmp_path):
+    plan = {"arms": ["ur10"], "how": "alone", "forced": False,
+            "candidates": [{"arms": ["ur10"], "how": "alone", "makespan_s": 552.0},
+                           {"arms": ["kinova", "ur10"], "how": "concurrent", "makespan_s": 648.0}]}
+    rep = _report()
+    rep["arms"]["kinova"]["state"] = "IDLE"          # parked, no program
+    code, out = _run(tmp_path, rep, {"plan": plan}, True, "--capture")
+    assert code == 0, out
+    assert out.startswith("FINISHED: m.stl on cell kinova_ur10, ur10 alone")
+    assert "plan: ur10 alone: 552 s" in out and "also considered: 2 arms concurrent (kinova, ur10) 648 s" in out
 
 
 def test_an_unfinished_print_fails_and_names_the_arm(tmp_path):

@@ -50,7 +50,7 @@ def jobs(tmp_path_factory):
         box.apply_translation((0.0, 0.0, dims[2] / 2))
         model = str(tmp_path_factory.mktemp("models") / ("%s.stl" % key))
         box.export(model)
-        out[key] = (cell, run_job(model, cell, [cell.arm(n) for n in names] if names else None))
+        out[key] = (cell, run_job(model, cell, [cell.arm(n) for n in names] if names else list(cell.arms)))
     return out
 
 

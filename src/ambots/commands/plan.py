@@ -89,6 +89,9 @@ def run(args):
     print("%s -> %s: %s, %s mode, makespan %.0f s (simulated), %s, wall %.1f s" % (
         args.model, args.out, rep["cell"], rep["mode"], rep["makespan_s"],
         "finished" if rep["finished"] else "NOT finished: " + rep["reason"], rep["wall_time_s"]))
+    from ambots.job import plan_lines
+    for line in plan_lines(rep.get("plan")):
+        print("  " + line)
     print("  collisions: %s; closest approach of two arms: %s mm" % (rep["collisions"], rep["min_clearance_mm"]))
     print("  %-8s %7s %11s %10s %9s %9s %5s %8s" % ("arm", "moves", "extrude mm", "travel mm", "print s",
                                                  "idle s", "ik!", "dev mm"))

@@ -14,7 +14,8 @@ def add_job_arguments(p, out):
     """The options of a job (shared by ``slice`` and ``plan``)."""
     p.add_argument("model", help="model file, millimetres")
     p.add_argument("--cell", help="cell YAML (default: config/cells/kinova_ur10.yaml)")
-    p.add_argument("--arms", help="comma-separated subset of the cell's arms, e.g. ur10")
+    p.add_argument("--arms", help="comma-separated arms to print with, e.g. ur10 (default: the planner "
+                                  "chooses the fastest of all the cell's arms together and each arm alone)")
     p.add_argument("--slicer", choices=("builtin", "prusa"), default="builtin")
     p.add_argument("--mode", choices=("concurrent", "sequential"), default="concurrent")
     p.add_argument("--seam", choices=("straight", "overlap"), default="straight")
@@ -32,6 +33,9 @@ def run(args):
     summary = write_job(job, args.out)
     print("%s -> %s: %s, %s slicer, %s mode, model %.0f mm3" % (
         args.model, args.out, cell.name, args.slicer, args.mode, summary["model_volume_mm3"]))
+    from ambots.job import plan_lines
+    for line in plan_lines(summary["plan"]):
+        print("  " + line)
     print("  %-8s %4s %10s %7s %7s %11s %11s %9s" % ("arm", "id", "part mm3", "layers", "moves",
                                                     "extrude mm", "filament mm", "time s"))
     for name, a in summary["arms"].items():

@@ -64,8 +64,11 @@ def summary_lines(out_dir, capture=False):
     head = "FINISHED" if finished else "NOT FINISHED"
     if finished and n_contacts:
         head = "FINISHED WITH CONTACTS"
-    lines = ["%s: %s on cell %s, %d arm%s, %s mode" % (
-        head, _shown(rep.get("model")), rep.get("cell"), len(arms), "" if len(arms) == 1 else "s", rep.get("mode"))]
+    plan = job.get("plan") or rep.get("plan") or {}
+    working = plan.get("arms") or list(arms)            # the arms with work (the planner may choose one)
+    how = ("%s alone" % working[0] if len(working) == 1 and len(arms) > 1
+           else "%d arm%s, %s mode" % (len(working), "" if len(working) == 1 else "s", rep.get("mode")))
+    lines = ["%s: %s on cell %s, %s" % (head, _shown(rep.get("model")), rep.get("cell"), how)]
     if not finished:
         states = ", ".join("%s %s" % (n, a.get("state")) for n, a in arms.items())
         lines.append("  arms: %s%s" % (states, "; " + str(rep.get("reason")) if rep.get("reason") else ""))
@@ -77,10 +80,12 @@ def summary_lines(out_dir, capture=False):
         wall = rep.get("wall_time_s")
         lines.append("  makespan      %s s simulated (%s)%s" % (
             format(round(makespan), ","), _duration(makespan), ", %.0f s wall" % wall if wall else ""))
-        alone = job.get("one_arm_estimate_s")
-        if alone and len(arms) > 1:
-            lines.append("  one arm alone %s s (estimate: the best arm alone, timed by the one timing law on "
-                         "a sample of the layers); speed-up %.2fx" % (format(round(alone), ","), alone / makespan))
+        from ambots.job import plan_lines
+        lines += ["  " + line for line in plan_lines(plan, brief=True)]
+        if not plan and job.get("one_arm_estimate_s") and len(arms) > 1:     # a job.json of before
+            alone = job["one_arm_estimate_s"]
+            lines.append("  one arm alone %s s (estimate); speed-up %.2fx" % (format(round(alone), ","),
+                                                                         alone / makespan))
     clearance = rep.get("min_clearance_mm")
     if checked:
         lines.append("  contacts      %d (%s)%s" % (

@@ -98,7 +98,7 @@ class PrintRecorder:
     says when every arm of the job is DONE (or one is in ERROR);
     :meth:`write` writes the deposit mesh and ``report.json``."""
 
-    def __init__(self, cell):
+    def __init__(self, cell, job_dir=None):
         import json
         import threading
         from sensor_msgs.msg import JointState
@@ -109,6 +109,8 @@ class PrintRecorder:
         from ambots.collision import ArmBody
         from ambots.rviz import DEPOSIT_TOPIC
         self.cell = cell
+        #: where the front end writes the job (job.json: which arms have work, the plan chosen)
+        self.job_dir = job_dir
         self._json = json
         self._lock = threading.RLock()
         self.markers = {}                      #: (ns, id) -> latest Marker
@@ -235,10 +237,25 @@ class PrintRecorder:
                 self.min_clearance = min(self.min_clearance, c)
                 self.contacts += c < 0.0
 
+    def job(self):
+        """This run's job.json (written by the front end after this recorder
+        started), or None."""
+        import os
+        path = os.path.join(self.job_dir, "job.json") if self.job_dir else None
+        if not path or not os.path.exists(path) or os.path.getmtime(path) < self.started - 1.0:
+            return None
+        try:
+            with open(path) as f:
+                return self._json.load(f)
+        except (OSError, ValueError):
+            return None
+
     def done(self, arms=None):
-        """(finished, failed): every arm of ``arms`` (default: the cell's) is
-        DONE / some arm is in ERROR."""
-        names = arms or [a.name for a in self.cell.arms]
+        """(finished, failed): every arm of ``arms`` (default: the arms with
+        a program in this run's job.json -- the planner may give the whole
+        model to one arm -- else the cell's) is DONE / some arm is in ERROR."""
+        job = self.job() if arms is None else None
+        names = arms or (list(job["arms"]) if job and job.get("arms") else [a.name for a in self.cell.arms])
         with self._lock:
             states = [self.progress.get(n, {}).get("state") for n in names]
         return all(s == "DONE" for s in states), any(s == "ERROR" for s in states)
@@ -293,6 +310,9 @@ class PrintRecorder:
                                  "line; near a contact or the closest approach no point moves more than "
                                  "check_resolution_mm between samples); trace_gaps: chunks not received, must "
                                  "be 0; live_*: the joint states as they arrived")
+            job = self.job()
+            if job and job.get("plan"):
+                extra["plan"] = job["plan"]
             report = build({"model": model, "cell": self.cell.name, "mode": mode, "slicer": slicer},
                            self.done()[0], arms, makespan_s(self.stats), executed,
                            dep.volume_mm3() if len(dep) else 0.0, model_volume_mm3,

@@ -1,0 +1,314 @@
+"""How long a plan takes, timed by the one timing law, fast enough to
+compare plans before any arm moves (no ROS).
+
+Two steps:
+
+1. **One arm's program, line by line** (:func:`line_durations`).  The
+   firmware's :class:`~ambots.motion.MotionPlanner` (IK, the one timing law)
+   plans a sample of the program's runs of moves, spread evenly over the
+   print (the first always, from the arm's home pose, as the firmware starts
+   it).  Those lines take their planned time.  Every other move takes the
+   time of a per-move model fitted on the sample, one per kind of move
+   (extruding, travel in the layer, any other travel -- a lift, a lowering --
+   and filament only): ``a * feed_time + b + c * sqrt(length)``, the time at
+   the feedrate, a fixed cost, and the ramps of a move that starts and ends
+   at rest (from rest over a distance L at a constant acceleration takes a
+   time in sqrt(L)); coefficients >= 0.  Dwells take their time; a move to a
+   park position (A7 to itself) is planned.
+2. **The arms together on one clock** (:func:`makespan`).  Each arm runs its
+   lines in order.  An arm that the front end does not start (sequential
+   mode) begins at the A1 another arm's program sends it; an A9 holds its
+   arm until the awaited arm has finished the line (or started the layer) it
+   names -- what the firmware does with the hub's reports, without the
+   messages' latency.  The makespan is when the last arm finishes.
+
+The estimate is checked against the offline simulation on one clock
+(:func:`ambots.sim.simulate`, every move planned, the hub and the runners'
+messages) in ``tests/unit/test_estimate.py``.
+
+Units: seconds; positions at the G-code boundary in mm (bed frame).
+"""
+import itertools
+import math
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from ambots.errors import AmbotsError
+
+__all__ = ["ProgramTimes", "EstimateError", "line_durations", "program_time", "makespan", "estimate_programs",
+           "MOVE_KINDS", "SAMPLE_MOVES"]
+
+#: the kinds of move the per-move model tells apart
+MOVE_KINDS = ("extrude", "travel", "lift", "filament")
+#: at most this many moves of a program are planned for the sample (plus the first run)
+SAMPLE_MOVES = 1500
+
+
+class EstimateError(AmbotsError):
+    """A plan cannot be timed (an arm cannot reach a move, arms wait for each other)."""
+
+
+@dataclass
+class ProgramTimes:
+    """One program's time per line: ``d`` (n_lines + 1,) s, index = line
+    (0 unused); ``layer_of_line`` (n_lines + 1,); ``directives`` {line:
+    protocol message}; ``planned_moves``/``moves`` how many moves were
+    planned / in all; ``model`` {kind: (a, b, c)}."""
+    d: np.ndarray
+    layer_of_line: np.ndarray
+    directives: Dict[int, object]
+    moves: int = 0
+    planned_moves: int = 0
+    model: Dict[str, tuple] = field(default_factory=dict)
+    error: Optional[str] = None
+
+    @property
+    def total_s(self):
+        return float(self.d.sum())
+
+
+def _features(segments):
+    """(kind index, feed time s, length mm) per segment."""
+    S = np.array([s.start for s in segments], float)
+    E = np.array([s.end for s in segments], float)
+    L = np.linalg.norm(E - S, axis=1)
+    e = np.array([s.e for s in segments], float)
+    feed = np.array([s.feedrate for s in segments], float)
+    ext = np.array([s.extrude for s in segments], bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.where(feed > 0, np.where(L > 0, L, np.abs(e)) * 60.0 / np.where(feed > 0, feed, 1.0), 0.0)
+    flat = np.abs(E[:, 2] - S[:, 2]) < 1e-9
+    kind = np.where(L == 0, 3, np.where(ext, 0, np.where(flat, 1, 2)))
+    return kind, f, L
+
+
+def _nonneg_fit(X, y):
+    """Least squares with coefficients >= 0 (few columns: every subset tried)."""
+    best, cost = np.zeros(X.shape[1]), float(np.sum(y * y))
+    for r in range(1, X.shape[1] + 1):
+        for cols in itertools.combinations(range(X.shape[1]), r):
+            c, *_ = np.linalg.lstsq(X[:, cols], y, rcond=None)
+            if (c < 0).any():
+                continue
+            full = np.zeros(X.shape[1])
+            full[list(cols)] = c
+            res = float(np.sum((X @ full - y) ** 2))
+            if res < cost:
+                best, cost = full, res
+    return best
+
+
+def _design(f, L):
+    return np.stack([f, np.ones_like(f), np.sqrt(L)], axis=1)
+
+
+def line_durations(text, arm, cell, path="<program>", sample_moves=SAMPLE_MOVES, planner=None):
+    """Per-line durations of ``arm`` executing program ``text`` alone (step 1
+    of the module docstring).  An unreachable move in the sample sets
+    ``error`` (the durations are then those of the model)."""
+    from ambots.motion import Directive, MotionPlanner, Moves, Pause, read_program
+    items, n_lines, layer_of_line = read_program(text, path)
+    d = np.zeros(n_lines + 1)
+    directives = {it.line: it.message for it in items if isinstance(it, Directive)}
+    runs = [i for i, it in enumerate(items) if isinstance(it, Moves)]
+    planner = planner or MotionPlanner(arm, cell)
+    home = np.asarray(arm.profile.home, float)
+    out = ProgramTimes(d, layer_of_line, directives)
+    if not runs:
+        for it in items:
+            if isinstance(it, Pause):
+                d[it.line] += it.seconds
+        return out
+    sizes = np.array([len(items[i].segments) for i in runs])
+    out.moves = int(sizes.sum())
+    # the sample: the first run, then runs evenly spread until the budget is used
+    chosen = _spread(runs, sizes, sample_moves)
+    planned = set()
+    rows = []            # (kind, feed time, length, planned time) of every sampled move
+    q = home
+    for i in chosen:
+        segs = items[i].segments
+        if i != runs[0]:                # start where the run starts (not counted), as the firmware would be
+            lead = planner.joint_move_to(planner.bed_mm_to_base(np.array([segs[0].start]))[0], q)
+            if lead.error is None:
+                q = lead.Q[-1]
+        block = planner.plan_moves(segs, q)
+        if block.error is not None:
+            out.error = "%s: line %d: %s" % (path, block.error.line, block.error.message)
+            break
+        q = block.Q[-1]
+        per_line = np.zeros(n_lines + 1)
+        np.add.at(per_line, block.line[1:], np.diff(block.t))
+        kind, f, L = _features(segs)
+        lines = np.array([s.line for s in segs])
+        first = 1 if (i == runs[0] and len(segs) > 1) else 0     # the lead from home is in the first line
+        for k in range(first, len(segs)):
+            rows.append((kind[k], f[k], L[k], per_line[lines[k]]))
+        d[lines] = per_line[lines]
+        planned.add(i)
+        out.planned_moves += len(segs)
+    R = np.array(rows, float).reshape(-1, 4)
+    ratio = R[:, 3].sum() / max(R[:, 1].sum(), 1e-9) if len(R) else 1.0
+    for k, name in enumerate(MOVE_KINDS):
+        sel = R[:, 0] == k
+        if sel.sum() >= 8:
+            out.model[name] = tuple(_nonneg_fit(_design(R[sel, 1], R[sel, 2]), R[sel, 3]))
+        else:                            # too few to fit: the sample's overall ratio to the feed time
+            out.model[name] = (ratio, 0.0, 0.0)
+    coef = np.array([out.model[name] for name in MOVE_KINDS])
+    for i in runs:
+        if i in planned:
+            continue
+        segs = items[i].segments
+        kind, f, L = _features(segs)
+        t = np.einsum("ij,ij->i", _design(f, L), coef[kind])
+        np.add.at(d, [s.line for s in segs], t)
+    for it in items:
+        if isinstance(it, Pause):
+            d[it.line] += it.seconds
+        elif isinstance(it, Directive) and getattr(it.message, "robot", None) == arm.id \
+                and type(it.message).__name__ == "MoveTo":
+            d[it.line] += _park_time(planner, items, it, home)
+    return out
+
+
+def program_time(text, arm, cell, path="<program>", sample_moves=SAMPLE_MOVES):
+    """Seconds ``arm`` needs to execute ``text`` alone (the sum of
+    :func:`line_durations`), or None if a sampled move is out of its reach."""
+    pt = line_durations(text, arm, cell, path, sample_moves)
+    return None if pt.error else pt.total_s
+
+
+def _spread(runs, sizes, budget):
+    """Runs to plan: the first, then evenly spread ones, about ``budget`` moves in all."""
+    total = int(sizes.sum())
+    if total <= budget:
+        return list(runs)
+    mean = max(float(sizes.mean()), 1.0)
+    count = max(1, int(budget / mean))
+    pick = np.unique(np.round(np.linspace(0, len(runs) - 1, count + 1)).astype(int))
+    return sorted({runs[0]} | {runs[j] for j in pick})
+
+
+def _park_time(planner, items, item, home):
+    """Duration of an A7 to itself: a joint move from where the program was."""
+    from ambots.motion import Moves
+    msg = item.message
+    prev = None
+    for it in items:
+        if isinstance(it, Moves) and it.segments[-1].line < item.line:
+            prev = it.segments[-1].end
+    q = home
+    if prev is not None:
+        lead = planner.joint_move_to(planner.bed_mm_to_base(np.array([prev]))[0], home)
+        if lead.error is None:
+            q = lead.Q[-1]
+    block = planner.joint_move_to(planner.bed_mm_to_base(np.array([[msg.x, msg.y, msg.z]]))[0], q)
+    return block.duration if block.error is None else 0.0
+
+
+def makespan(times, arms, start_first=None):
+    """The arms' programs together on one clock (step 2 of the module
+    docstring).  ``times``: {arm name: :class:`ProgramTimes`}; ``arms``: the
+    arm objects (name, id); ``start_first``: {name: bool}, arms the front end
+    starts (default: all).  Returns {"makespan_s", "arms": {name: {"start_s",
+    "finish_s", "busy_s", "idle_s"}}}.  Raises :class:`EstimateError` if
+    the arms would wait for each other for ever."""
+    by_id = {a.id: a.name for a in arms}
+    names = [a.name for a in arms if a.name in times]
+    start_first = start_first or {}
+    state = {}
+    for n in names:
+        pt = times[n]
+        marks = sorted(pt.directives)
+        cs = np.concatenate([[0.0], np.cumsum(pt.d[1:])])        # cs[k]: lines 1..k
+        state[n] = {"pt": pt, "marks": marks, "cs": cs, "i": 0, "line": 0, "clock": None,
+                    "stretches": [(0, 0.0)], "done": None}
+        if start_first.get(n, True):
+            state[n]["clock"] = 0.0
+    for n in names:
+        state[n]["start"] = state[n]["clock"]
+
+    def time_of_line(n, line):
+        """When arm n finished ``line``, or None if not known yet."""
+        s = state[n]
+        if s["done"] is not None and line >= s["line"]:
+            return s["done"]
+        if s["clock"] is None or line > s["line"]:
+            return None
+        # the stretch that holds the line
+        for first, t0 in reversed(s["stretches"]):
+            if first <= line:
+                return t0 + s["cs"][line] - s["cs"][first]
+        return None
+
+    def time_of_layer(n, layer):
+        s = state[n]
+        lol = s["pt"].layer_of_line
+        hit = np.nonzero(lol[1:] >= layer)[0]
+        if not len(hit):
+            return s["done"]
+        first = int(hit[0]) + 1
+        return time_of_line(n, first)
+
+    progress = True
+    while progress:
+        progress = False
+        for n in names:
+            s = state[n]
+            if s["clock"] is None or s["done"] is not None:
+                continue
+            pt, marks = s["pt"], s["marks"]
+            while s["i"] < len(marks):
+                m = marks[s["i"]]
+                clock_at_m = s["stretches"][-1][1] + s["cs"][m - 1] - s["cs"][s["stretches"][-1][0]]
+                msg = pt.directives[m]
+                kind = type(msg).__name__
+                if kind == "WaitFor" and by_id.get(msg.robot) == n and by_id.get(msg.other) in state:
+                    other = by_id[msg.other]
+                    t = (time_of_line(other, msg.line) if msg.line is not None
+                         else time_of_layer(other, msg.layer))
+                    if t is None:
+                        s["line"] = m - 1
+                        break                       # blocked: let the others run
+                    s["stretches"].append((m, max(clock_at_m, t)))      # line m (the barrier) ends then
+                elif kind == "Start" and by_id.get(msg.robot) in state:
+                    o = state[by_id[msg.robot]]
+                    if o["clock"] is None:
+                        o["clock"] = clock_at_m + s["cs"][m] - s["cs"][m - 1]
+                        o["start"] = o["clock"]
+                        o["stretches"] = [(0, o["clock"])]
+                        progress = True
+                s["i"] += 1
+                s["line"] = m
+                progress = True
+            else:
+                last = len(pt.d) - 1
+                s["line"] = last
+                s["done"] = s["stretches"][-1][1] + s["cs"][last] - s["cs"][s["stretches"][-1][0]]
+                progress = True
+    stuck = [n for n in names if state[n]["done"] is None]
+    if stuck:
+        raise EstimateError("the programs of %s wait for each other (or are never started)" % ", ".join(stuck))
+    out = {"makespan_s": max((state[n]["done"] for n in names), default=0.0), "arms": {}}
+    for n in names:
+        s = state[n]
+        busy = float(s["pt"].d.sum())
+        out["arms"][n] = {"start_s": float(s["start"]), "finish_s": float(s["done"]), "busy_s": busy,
+                          "idle_s": float(s["done"] - s["start"] - busy)}
+    return out
+
+
+def estimate_programs(programs, cell, sample_moves=SAMPLE_MOVES):
+    """Makespan of coordinated programs ({name: ArmProgram}, see
+    :mod:`ambots.coordinate`), timed by the one timing law: :func:`makespan`
+    of each program's :func:`line_durations`.  Adds ``errors`` {name: text}
+    for programs with a move out of reach in the sample."""
+    times = {n: line_durations(p.text, p.arm, cell, n + ".gcode", sample_moves) for n, p in programs.items()}
+    out = makespan(times, [p.arm for p in programs.values()],
+                   {n: p.start_first for n, p in programs.items()})
+    out["errors"] = {n: t.error for n, t in times.items() if t.error}
+    out["planned_moves"] = {n: t.planned_moves for n, t in times.items()}
+    return out

@@ -1,0 +1,127 @@
+"""Does cooperation pay?  Models of our own making, of different sizes and
+shapes (none is the demo's or the beam's): per model the makespan of the
+best single arm, of the two arms of the default cell together, and of the
+four arms of config/cells/four_arms.yaml together (with that cell's best
+single arm), all timed by the one timing law (``ambots.estimate``, as the
+planner times its candidates), and the plan the planner chooses
+(``ambots.job.run_job``: never slower than one arm).  Goals (issue
+"Cooperation pays"): no chosen plan slower than the best arm alone (ratio
+<= 1.00); two arms <= 0.60 on every model at least 250 mm across; the demo
+<= 0.53; four arms <= 0.35 on a model of 300 mm or more.
+
+Then every chosen plan runs in the offline simulation on one clock
+(``python -m ambots plan``'s engine: every move planned, the real-size
+bodies checked continuously), once as planned and once with every block
+of each arm's motion stretched by a random factor in [0.5, 2] (``--slow
+ARM=0.5:2``, seed 1): contacts must be 0 and the simulated makespan is
+printed next to the estimate.  ``BENCH_COOPERATION_SIM=0`` skips the
+simulations (the estimates take about a minute in all)."""
+import math
+import os
+import tempfile
+import time
+
+import numpy as np
+import trimesh
+
+from ambots import data_path
+from ambots.config import default_cell_path, load_cell
+from ambots.job import DEMO_MODEL, run_job
+
+SLOW = (0.5, 2.0)
+
+
+def _lifted(m):
+    m.apply_translation((0.0, 0.0, -m.bounds[0][2]))
+    return m
+
+
+def hex_prism(across_corners, height, hole=0.0):
+    m = trimesh.creation.cylinder(across_corners / 2.0, height, sections=6)
+    if hole > 0:
+        m = trimesh.boolean.difference([m, trimesh.creation.cylinder(hole / 2.0, height * 1.5, sections=64)],
+                                       engine="manifold")
+    return _lifted(m)
+
+
+def models():
+    """name -> (mesh, mm across).  Sizes 30-300 mm."""
+    figure = trimesh.boolean.union([trimesh.creation.cylinder(12.0, 8.0, sections=64),
+                                    trimesh.creation.cylinder(6.0, 20.0, sections=64).apply_translation((0, 0, 10)),
+                                    trimesh.creation.icosphere(3, 8.0).apply_translation((0, 0, 24))],
+                                   engine="manifold")
+    ring = trimesh.boolean.difference([trimesh.creation.cylinder(70.0, 8.0, sections=128),
+                                       trimesh.creation.cylinder(50.0, 10.0, sections=128)], engine="manifold")
+    ell = trimesh.boolean.union([trimesh.creation.box((200.0, 40.0, 8.0)).apply_translation((0, -55, 0)),
+                                 trimesh.creation.box((40.0, 150.0, 8.0)).apply_translation((-80, 0, 0))],
+                                engine="manifold")
+    plate = hex_prism(300.0, 6.0)
+    plate.apply_scale((276.0 / 300.0, 174.0 / (300.0 * math.sqrt(3) / 2), 1.0))
+    out = {
+        "small figure (32 mm)": _lifted(figure),
+        "hex nut (46 mm)": hex_prism(46.0, 20.0, hole=24.0),
+        "tower 20x20x120": _lifted(trimesh.creation.box((20.0, 20.0, 120.0))),
+        "sphere (100 mm)": _lifted(trimesh.creation.icosphere(4, 50.0)),
+        "ring (140 mm)": _lifted(ring),
+        "L (200 x 150 mm)": _lifted(ell),
+        "hex plate (276 x 174 mm)": _lifted(plate),
+        "plate 300 x 300 x 4 (four arms)": _lifted(trimesh.creation.box((300.0, 300.0, 4.0))),
+    }
+    return out
+
+
+def _best_single(job):
+    alone = [c for c in job.candidates if len(c.arms) == 1 and c.makespan_s is not None]
+    return min(alone, key=lambda c: c.makespan_s) if alone else None
+
+
+def _row(label, cell, path, simulate_runs):
+    from ambots.sim import check_motion, simulate
+    t0 = time.perf_counter()
+    job = run_job(path, cell)
+    wall = time.perf_counter() - t0
+    chosen, single = job.chosen, _best_single(job)
+    together = next((c for c in job.candidates if len(c.arms) == len(cell.arms)), None)
+    ratio = lambda c: (c.makespan_s / single.makespan_s) if c is not None and c.makespan_s and single else math.nan
+    line = ("%-32s %-10s best single %s %8s s | %d arms %8s s = %.3f | chosen %-14s %.3f (plan %.0f s wall)"
+            % (label, cell.name, single.arms[0] if single else "-", "%.0f" % single.makespan_s if single else "-",
+               len(cell.arms), "%.0f" % together.makespan_s if together and together.makespan_s else "-",
+               ratio(together), "+".join(chosen.arms), ratio(chosen), wall))
+    print(line, flush=True)
+    if simulate_runs:
+        for slow, tag in ((None, "as planned"), ({n: SLOW for n in job.programs}, "0.5-2x per move, seed 1")):
+            t1 = time.perf_counter()
+            res = simulate(job.programs, cell, slow=slow, seed=1)
+            motion = check_motion(res, cell)
+            print("    simulated (%s): makespan %.0f s (estimate %.0f s), %s, contacts %d, closest %s mm; %.0f s wall"
+                  % (tag, res.makespan_s, chosen.makespan_s, "finished" if res.finished else "NOT finished",
+                     sum(motion["collisions"].values()), motion["min_clearance_mm"], time.perf_counter() - t1),
+                  flush=True)
+    return ratio(chosen), ratio(together)
+
+
+def main():
+    two = load_cell(default_cell_path())
+    four = load_cell(data_path("config", "cells", "four_arms.yaml"))
+    sim = os.environ.get("BENCH_COOPERATION_SIM", "1") != "0"
+    worst = 0.0
+    with tempfile.TemporaryDirectory() as tmp:
+        rows = [("demo block (240 mm)", data_path(*DEMO_MODEL.split("/")), [two])]
+        for name, mesh in models().items():
+            path = os.path.join(tmp, "".join(c if c.isalnum() else "_" for c in name) + ".stl")
+            mesh.export(path)
+            cells = [four] if "four arms" in name else [two, four] if "plate" in name or "ring" in name else [two]
+            rows.append((name, path, cells))
+        for name, path, cells in rows:
+            for cell in cells:
+                try:
+                    chosen, _ = _row(name, cell, path, sim)
+                except Exception as exc:          # a model the cell cannot print: say so, go on
+                    print("%-32s %-10s cannot be planned: %s" % (name, cell.name, exc), flush=True)
+                    continue
+                worst = max(worst, chosen)
+    print("worst chosen plan / best single arm: %.3f (goal <= 1.00)" % worst, flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,171 @@
+"""Makespan estimates (ambots.estimate) and the planner's choice of plan
+(ambots.job.run_job), checked against independent measures: the firmware's
+runner executing a program on its own clock, the offline simulation of all
+arms on one clock (every move planned, the hub's messages), and hand-worked
+schedules."""
+import numpy as np
+import pytest
+import trimesh
+
+from ambots.config import default_cell_path, load_cell
+from ambots.estimate import EstimateError, ProgramTimes, estimate_programs, line_durations, makespan, program_time
+from ambots.job import TIE_SHARE, run_job
+from ambots.protocol import LoadChunk, Start, WaitFor
+from ambots.runner import ArmRunner
+from ambots.sim import simulate
+
+
+@pytest.fixture(scope="module")
+def cell():
+    return load_cell(default_cell_path())
+
+
+def growing_squares(layers=12):
+    """A square that grows layer by layer (layers that differ), with a
+    retraction and a dwell per layer."""
+    lines = ["G21", "G90", "M83"]
+    for layer in range(layers):
+        z = 0.2 * (layer + 1)
+        half = 10.0 + 2.0 * layer
+        lines += [";LAYER_CHANGE", ";Z:%.1f" % z, "G0 X%.1f Y%.1f Z%.1f F9000" % (-half, -half, z)]
+        for x, y in ((half, -half), (half, half), (-half, half), (-half, -half)):
+            lines.append("G1 X%.1f Y%.1f E%.3f F1800" % (x, y, 0.05 * half))
+        lines += ["G1 E-0.8 F2100", "G4 P200", "G1 E0.8 F2100"]
+    return "\n".join(lines) + "\n"
+
+
+def runner_time(arm, cell, text):
+    r = ArmRunner(arm, cell)
+    r.handle(LoadChunk(arm.id, text, chunk_id=1))
+    r.handle(Start(arm.id), now=0.0)
+    t = 0.0
+    while r.state.name not in ("DONE", "ERROR") and t < 1e5:
+        t += 5.0
+        r.advance(t)
+    assert r.state.name == "DONE"
+    return r.stats.done_s
+
+
+def test_a_program_planned_whole_takes_the_runners_time_and_a_sample_stays_close(cell):
+    """Every run planned: the time the firmware's runner takes for the same
+    program (the move from home is planned the same way; within 1 %).  With
+    a sample of a sixth of the moves and the per-move model elsewhere:
+    within 3 % of that."""
+    arm = cell.arm("ur10")
+    text = growing_squares()
+    truth = runner_time(arm, cell, text)
+    full = line_durations(text, arm, cell, sample_moves=10 ** 9)
+    assert full.planned_moves == full.moves
+    assert full.total_s == pytest.approx(truth, rel=0.01)
+    sampled = line_durations(text, arm, cell, sample_moves=full.moves // 6)
+    assert sampled.planned_moves < full.moves // 3
+    assert sampled.total_s == pytest.approx(truth, rel=0.03)
+    # a move out of reach: no time
+    far = text.replace("X-10.0 Y-10.0 Z0.2", "X-5000.0 Y-10.0 Z0.2")
+    assert program_time(far, arm, cell) is None
+    assert "line 6" in line_durations(far, arm, cell, "far.gcode").error
+
+
+class _Arm:
+    def __init__(self, name, id_):
+        self.name, self.id = name, id_
+
+
+def _times(durations, directives):
+    d = np.concatenate([[0.0], np.asarray(durations, float)])
+    return ProgramTimes(d, np.zeros(len(d), int), dict(directives))
+
+
+def test_barriers_and_starts_hold_an_arm_as_worked_out_by_hand():
+    a, b, c = _Arm("a", 1), _Arm("b", 2), _Arm("c", 3)
+    # a: 10 lines of 1 s.  b: 2 s, then waits (line 2) for a's line 6, then 3 lines of 1 s.
+    # c: started by b's last line (line 6), then 4 s.
+    ta = _times([1.0] * 10, {})
+    tb = _times([2.0, 0.0, 1.0, 1.0, 1.0, 0.0], {2: WaitFor(2, 1, line=6), 6: Start(3)})
+    tc = _times([4.0], {})
+    out = makespan({"a": ta, "b": tb, "c": tc}, [a, b, c], {"a": True, "b": True, "c": False})
+    assert out["arms"]["a"]["finish_s"] == pytest.approx(10.0)
+    assert out["arms"]["b"]["finish_s"] == pytest.approx(6.0 + 3.0)        # released at 6
+    assert out["arms"]["b"]["idle_s"] == pytest.approx(4.0)                 # 2 .. 6
+    assert out["arms"]["c"]["start_s"] == pytest.approx(9.0)
+    assert out["arms"]["c"]["finish_s"] == pytest.approx(13.0)
+    assert out["makespan_s"] == pytest.approx(13.0)
+    # a barrier on a line already done does not hold: b waits for a's line 1 (done at 1 s)
+    tb2 = _times([2.0, 0.0, 1.0], {2: WaitFor(2, 1, line=1)})
+    assert makespan({"a": ta, "b": tb2}, [a, b])["arms"]["b"]["finish_s"] == pytest.approx(3.0)
+    # two arms waiting for each other: refused, naming them
+    t1 = _times([1.0, 0.0, 1.0], {2: WaitFor(1, 2, line=3)})
+    t2 = _times([1.0, 0.0, 1.0], {2: WaitFor(2, 1, line=3)})
+    with pytest.raises(EstimateError, match="a, b"):
+        makespan({"a": t1, "b": t2}, [a, b])
+
+
+def _model(tmp_path, name, mesh):
+    path = str(tmp_path / (name + ".stl"))
+    mesh.export(path)
+    return path
+
+
+def _box(dims):
+    m = trimesh.creation.box(dims)
+    m.apply_translation((0.0, 0.0, dims[2] / 2.0))
+    return m
+
+
+@pytest.fixture(scope="module")
+def strip_job(cell, tmp_path_factory):
+    """Two arms forced on a strip long enough for both to print at once."""
+    path = _model(tmp_path_factory.mktemp("est"), "strip", _box((240.0, 20.0, 0.6)))
+    return run_job(path, cell, arms=list(cell.arms))
+
+
+def test_the_estimate_of_two_arms_is_the_simulation_on_one_clock(cell, strip_job):
+    """The same programs, every move planned and the arms' barriers passed
+    through the hub's messages on one simulated clock: within 3 %."""
+    assert strip_job.forced and set(strip_job.programs) == {"kinova", "ur10"}
+    est = estimate_programs(strip_job.programs, cell)
+    sim = simulate(strip_job.programs, cell)
+    assert all(r.state.name == "DONE" for r in sim.runners.values())
+    assert est["makespan_s"] == pytest.approx(sim.makespan_s, rel=0.03)
+    for name, r in sim.runners.items():
+        assert est["arms"][name]["finish_s"] == pytest.approx(r.stats.done_s, rel=0.03)
+
+
+def test_the_planner_never_chooses_a_slower_plan(cell, tmp_path):
+    """A compact part (30 mm: inside the seam zone of the two arms, which
+    then take turns) is printed by one arm alone, and the simulation agrees
+    that this is faster than the two arms together; each plan is in the
+    job's candidates with its makespan."""
+    path = _model(tmp_path, "small", _box((30.0, 30.0, 1.0)))
+    job = run_job(path, cell)
+    assert not job.forced
+    plans = {tuple(c.arms): c for c in job.candidates}
+    assert set(plans) == {("kinova", "ur10"), ("kinova",), ("ur10",)}
+    chosen = job.chosen
+    assert len(chosen.arms) == 1 and list(job.programs) == chosen.arms
+    both = plans["kinova", "ur10"]
+    assert chosen.makespan_s * (1 + TIE_SHARE) <= both.makespan_s or chosen.makespan_s < both.makespan_s
+    sim_chosen = simulate(job.programs, cell).makespan_s
+    sim_both = simulate(both.programs, cell).makespan_s
+    assert sim_chosen < sim_both
+    assert chosen.makespan_s == pytest.approx(sim_chosen, rel=0.03)
+    # the arm alone parks the other first (A7), which then has no program
+    idle = [n for n in ("kinova", "ur10") if n not in job.programs][0]
+    assert any(line.startswith(";@A7 R%d " % cell.arm(idle).id) for line in job.programs[chosen.arms[0]].lines)
+    summary = job.plan_summary()
+    assert summary["arms"] == chosen.arms and summary["speedup"] == pytest.approx(1.0)
+    assert summary["best_single_arm_s"] == pytest.approx(chosen.makespan_s, abs=0.1)
+
+
+def test_a_long_part_is_printed_by_both_arms_and_a_flag_forces_the_arms(cell, tmp_path):
+    """The demo's shape (240 mm across the seam): both arms, faster than
+    the best arm alone by the simulation too; ``arms`` given: that set,
+    nothing else considered."""
+    path = _model(tmp_path, "long", _box((240.0, 40.0, 0.6)))
+    job = run_job(path, cell)
+    assert job.chosen.arms == ["kinova", "ur10"] and set(job.programs) == {"kinova", "ur10"}
+    alone = min((c for c in job.candidates if len(c.arms) == 1), key=lambda c: c.makespan_s)
+    assert simulate(job.programs, cell).makespan_s < simulate(alone.programs, cell).makespan_s
+    forced = run_job(path, cell, arms=[cell.arm("ur10")])
+    assert forced.forced and [c.arms for c in forced.candidates] == [["ur10"]]
+    assert list(forced.programs) == ["ur10"]
