@@ -58,7 +58,7 @@ def main():
             n = len(names)
             _line(n, "+".join(names), rep, wall, rep["makespan_s"] / one, GOALS.get(n))
     t = time.perf_counter()
-    rep = plan_job(data_path(*BEAM.split("/")), cell)
+    rep = plan_job(data_path(*BEAM.split("/")), cell, list(cell.arms))
     wall = time.perf_counter() - t
     scale = 3600.0 / SECTION_MM[0]
     _line(8, "all, whole beam (vs %.2f x 1 arm)" % scale, rep, wall, rep["makespan_s"] / (one * scale))

@@ -17,7 +17,7 @@ from ambots.sim import _trace, check_motion, simulate
 
 def main():
     cell = load_cell(default_cell_path())
-    job = run_job(data_path(*DEMO_MODEL.split("/")), cell)
+    job = run_job(data_path(*DEMO_MODEL.split("/")), cell, list(cell.arms))
     result = simulate(job.programs, cell)
     t = time.perf_counter()
     m = check_motion(result, cell)

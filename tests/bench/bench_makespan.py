@@ -19,7 +19,7 @@ def main():
     model = data_path(*DEMO_MODEL.split("/"))
     runs = {}
     for label, arms in (("kinova alone", [cell.arm("kinova")]), ("ur10 alone", [cell.arm("ur10")]),
-                        ("both, concurrent", None)):
+                        ("both, concurrent", list(cell.arms))):
         rep = plan_job(model, cell, arms)
         runs[label] = rep
         sim_s = sum(a["print_time_s"] + a["idle_time_s"] for a in rep["arms"].values())
@@ -42,7 +42,7 @@ def _feedrate_only(block, scale=1.0):
 def timing_law(model, cell, rep):
     from ambots.job import run_job
     from ambots.sim import check_motion, simulate
-    job = run_job(model, cell)
+    job = run_job(model, cell, list(cell.arms))
     old = simulate(job.programs, cell, planner_kw={"timing": _feedrate_only})
     motion = check_motion(old, cell)
     print("timing law: demo makespan, one timing law %.0f s vs feedrate only (before) %.0f s = %+.1f %%; "

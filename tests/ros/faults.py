@@ -84,7 +84,7 @@ def run_print(tmp, port, model, faults="", kill_after=None, slowdown="1.0", seed
         import rospkg
         node = os.path.join(rospkg.RosPack().get_path("ambots"), "nodes", "front_end")
         fe = subprocess.Popen([sys.executable, node, "--print", "--model", model, "--out",
-                               os.path.join(tmp, "job"), "--timeout", str(timeout)],
+                               os.path.join(tmp, "job"), "--timeout", str(timeout), "--arms", "kinova,ur10"],
                               stdout=logs["front_end"], stderr=subprocess.STDOUT, env=env)
         events = sorted((t, what) for t, what in ((kill_after, "kinova"), (kill_hub_after, "hub"),
                                                   (replace_front_end_after, "front_end")) if t is not None)

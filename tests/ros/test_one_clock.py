@@ -27,7 +27,9 @@ def test_own_model_live_equals_checked_and_plan(tmp_path, dims, speed):
     out = tmp_path / "print"
     env = dict(os.environ, ROS_HOME=str(tmp_path / "ros_home"))
     with open(tmp_path / "make.log", "w") as f:
-        r = subprocess.run(["make", "-s", "print", "MODEL=%s" % model, "OUT=%s" % out, "SPEED=%d" % speed],
+        # both arms (the planner would give a part this small to one arm): two arms on one clock
+        r = subprocess.run(["make", "-s", "print", "MODEL=%s" % model, "OUT=%s" % out, "SPEED=%d" % speed,
+                            "ARMS=kinova,ur10"],
                            cwd=ROOT, stdout=f, stderr=subprocess.STDOUT, timeout=1500, env=env)
     log = (tmp_path / "make.log").read_text()
     assert r.returncode == 0, log[-3000:]
@@ -35,7 +37,8 @@ def test_own_model_live_equals_checked_and_plan(tmp_path, dims, speed):
     assert live["finished"] and live["collisions"] == {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}, live
     assert live["live_collisions"] == {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}, live
     assert live["live_collision_checks"] > 50 and live["live_min_clearance_mm"] > 0
-    offline = plan_job(str(model), load_cell(default_cell_path()))
+    cell = load_cell(default_cell_path())
+    offline = plan_job(str(model), cell, list(cell.arms))
     assert offline["finished"] and sum(offline["collisions"].values()) == 0
     assert abs(live["makespan_s"] - offline["makespan_s"]) <= 0.01 * offline["makespan_s"], \
         (live["makespan_s"], offline["makespan_s"])
