@@ -69,8 +69,14 @@ class ProgramTimes:
         return float(self.d.sum())
 
 
+#: a move whose direction turns by more than this from the one before (or
+#: after) starts (ends) at a corner, where the arm slows down or rests
+CORNER_DEG = 20.0
+
+
 def _features(segments):
-    """(kind index, feed time s, length mm) per segment."""
+    """(kind index, feed time s, length mm, corners (0, 1 or 2: ends of the
+    move at a corner or at rest)) per segment."""
     S = np.array([s.start for s in segments], float)
     E = np.array([s.end for s in segments], float)
     L = np.linalg.norm(E - S, axis=1)
@@ -81,7 +87,13 @@ def _features(segments):
         f = np.where(feed > 0, np.where(L > 0, L, np.abs(e)) * 60.0 / np.where(feed > 0, feed, 1.0), 0.0)
     flat = np.abs(E[:, 2] - S[:, 2]) < 1e-9
     kind = np.where(L == 0, 3, np.where(ext, 0, np.where(flat, 1, 2)))
-    return kind, f, L
+    u = (E - S) / np.where(L > 0, L, 1.0)[:, None]
+    smooth = np.zeros(len(L) + 1, bool)          # smooth[k]: no corner between move k-1 and move k
+    if len(L) > 1:
+        smooth[1:-1] = ((np.einsum("ij,ij->i", u[:-1], u[1:]) > np.cos(np.radians(CORNER_DEG)))
+                        & (L[:-1] > 0) & (L[1:] > 0) & (kind[:-1] == kind[1:]))
+    corners = (~smooth[:-1]).astype(float) + (~smooth[1:]).astype(float)
+    return kind, f, L, corners
 
 
 def _nonneg_fit(X, y):
@@ -100,8 +112,10 @@ def _nonneg_fit(X, y):
     return best
 
 
-def _design(f, L):
-    return np.stack([f, np.ones_like(f), np.sqrt(L)], axis=1)
+def _design(f, L, corners):
+    """Features of the per-move model: time at the feedrate, a fixed cost,
+    and the ramps at the move's corners (sqrt(length) per corner)."""
+    return np.stack([f, np.ones_like(f), 0.5 * corners * np.sqrt(L)], axis=1)
 
 
 def line_durations(text, arm, cell, path="<program>", sample_moves=SAMPLE_MOVES, planner=None):
@@ -141,20 +155,20 @@ def line_durations(text, arm, cell, path="<program>", sample_moves=SAMPLE_MOVES,
         q = block.Q[-1]
         per_line = np.zeros(n_lines + 1)
         np.add.at(per_line, block.line[1:], np.diff(block.t))
-        kind, f, L = _features(segs)
+        kind, f, L, cor = _features(segs)
         lines = np.array([s.line for s in segs])
         first = 1 if (i == runs[0] and len(segs) > 1) else 0     # the lead from home is in the first line
         for k in range(first, len(segs)):
-            rows.append((kind[k], f[k], L[k], per_line[lines[k]]))
+            rows.append((kind[k], f[k], L[k], cor[k], per_line[lines[k]]))
         d[lines] = per_line[lines]
         planned.add(i)
         out.planned_moves += len(segs)
-    R = np.array(rows, float).reshape(-1, 4)
-    ratio = R[:, 3].sum() / max(R[:, 1].sum(), 1e-9) if len(R) else 1.0
+    R = np.array(rows, float).reshape(-1, 5)
+    ratio = R[:, 4].sum() / max(R[:, 1].sum(), 1e-9) if len(R) else 1.0
     for k, name in enumerate(MOVE_KINDS):
         sel = R[:, 0] == k
         if sel.sum() >= 8:
-            out.model[name] = tuple(_nonneg_fit(_design(R[sel, 1], R[sel, 2]), R[sel, 3]))
+            out.model[name] = tuple(_nonneg_fit(_design(R[sel, 1], R[sel, 2], R[sel, 3]), R[sel, 4]))
         else:                            # too few to fit: the sample's overall ratio to the feed time
             out.model[name] = (ratio, 0.0, 0.0)
     coef = np.array([out.model[name] for name in MOVE_KINDS])
@@ -162,8 +176,8 @@ def line_durations(text, arm, cell, path="<program>", sample_moves=SAMPLE_MOVES,
         if i in planned:
             continue
         segs = items[i].segments
-        kind, f, L = _features(segs)
-        t = np.einsum("ij,ij->i", _design(f, L), coef[kind])
+        kind, f, L, cor = _features(segs)
+        t = np.einsum("ij,ij->i", _design(f, L, cor), coef[kind])
         np.add.at(d, [s.line for s in segs], t)
     for it in items:
         if isinstance(it, Pause):
@@ -182,14 +196,19 @@ def program_time(text, arm, cell, path="<program>", sample_moves=SAMPLE_MOVES):
 
 
 def _spread(runs, sizes, budget):
-    """Runs to plan: the first, then evenly spread ones, about ``budget`` moves in all."""
+    """Runs to plan: the first, then runs at evenly spaced positions of the
+    program's moves (a run is picked in proportion to its number of moves,
+    so long runs of short segments -- curved perimeters -- are not
+    under-represented), about ``budget`` moves in all."""
     total = int(sizes.sum())
     if total <= budget:
         return list(runs)
-    mean = max(float(sizes.mean()), 1.0)
-    count = max(1, int(budget / mean))
-    pick = np.unique(np.round(np.linspace(0, len(runs) - 1, count + 1)).astype(int))
-    return sorted({runs[0]} | {runs[j] for j in pick})
+    per_pick = float((sizes * sizes).sum()) / total       # the mean size of a run picked so
+    count = max(1, int(budget / max(per_pick, 1.0)))
+    ends = np.cumsum(sizes)
+    at = (np.arange(count) + 0.5) * total / count               # move positions
+    pick = np.unique(np.searchsorted(ends, at, side="right"))
+    return sorted({runs[0]} | {runs[j] for j in pick if j < len(runs)})
 
 
 def _park_time(planner, items, item, home):
