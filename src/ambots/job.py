@@ -117,7 +117,8 @@ def plan_lines(plan, brief=False):
     fmt = lambda t: "not timed" if t is None else "%s s" % format(round(t), ",")
     head = "plan: %s: %s" % (_how(chosen["arms"], chosen["how"]), fmt(chosen["makespan_s"]))
     if plan.get("forced"):
-        head += " (arms given: no other plan considered)"
+        head += (" (sequential mode: the arms in turn, no other plan considered)" if chosen["how"] == "sequential"
+                 else " (arms given: no other plan considered)")
     lines = [head]
     singles = [c for c in plan["candidates"] if len(c["arms"]) == 1 and c["makespan_s"] is not None]
     if len(chosen["arms"]) > 1 and singles:
