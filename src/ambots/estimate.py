@@ -29,13 +29,13 @@ messages) in ``tests/unit/test_estimate.py``.
 Units: seconds; positions at the G-code boundary in mm (bed frame).
 """
 import itertools
-import math
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional
+from typing import Dict, Optional
 
 import numpy as np
 
 from ambots.errors import AmbotsError
+from ambots.protocol import MoveTo, Start, WaitFor
 
 __all__ = ["ProgramTimes", "EstimateError", "line_durations", "program_time", "makespan", "estimate_programs",
            "MOVE_KINDS", "SAMPLE_MOVES"]
@@ -76,7 +76,9 @@ CORNER_DEG = 20.0
 
 def _features(segments):
     """(kind index, feed time s, length mm, corners (0, 1 or 2: ends of the
-    move at a corner or at rest)) per segment."""
+    move at a corner or at rest)) per segment, vectorised; the feed time is
+    :func:`ambots.gcode.summarize`'s (length / feedrate, a filament-only
+    move at its E speed) per segment."""
     S = np.array([s.start for s in segments], float)
     E = np.array([s.end for s in segments], float)
     L = np.linalg.norm(E - S, axis=1)
@@ -140,7 +142,7 @@ def line_durations(text, arm, cell, path="<program>", sample_moves=SAMPLE_MOVES,
     # the sample: the first run, then runs evenly spread until the budget is used
     chosen = _spread(runs, sizes, sample_moves)
     planned = set()
-    rows = []            # (kind, feed time, length, planned time) of every sampled move
+    rows = []            # (kind, feed time, length, corners, planned time) of the sampled moves, per run
     q = home
     for i in chosen:
         segs = items[i].segments
@@ -158,12 +160,11 @@ def line_durations(text, arm, cell, path="<program>", sample_moves=SAMPLE_MOVES,
         kind, f, L, cor = _features(segs)
         lines = np.array([s.line for s in segs])
         first = 1 if (i == runs[0] and len(segs) > 1) else 0     # the lead from home is in the first line
-        for k in range(first, len(segs)):
-            rows.append((kind[k], f[k], L[k], cor[k], per_line[lines[k]]))
+        rows.append(np.column_stack([kind, f, L, cor, per_line[lines]])[first:])
         d[lines] = per_line[lines]
         planned.add(i)
         out.planned_moves += len(segs)
-    R = np.array(rows, float).reshape(-1, 5)
+    R = np.concatenate(rows) if rows else np.zeros((0, 5))
     ratio = R[:, 4].sum() / max(R[:, 1].sum(), 1e-9) if len(R) else 1.0
     for k, name in enumerate(MOVE_KINDS):
         sel = R[:, 0] == k
@@ -179,12 +180,14 @@ def line_durations(text, arm, cell, path="<program>", sample_moves=SAMPLE_MOVES,
         kind, f, L, cor = _features(segs)
         t = np.einsum("ij,ij->i", _design(f, L, cor), coef[kind])
         np.add.at(d, [s.line for s in segs], t)
+    last_end = None                      # where the program's moves were before each item (bed mm)
     for it in items:
         if isinstance(it, Pause):
             d[it.line] += it.seconds
-        elif isinstance(it, Directive) and getattr(it.message, "robot", None) == arm.id \
-                and type(it.message).__name__ == "MoveTo":
-            d[it.line] += _park_time(planner, items, it, home)
+        elif isinstance(it, Moves):
+            last_end = it.segments[-1].end
+        elif isinstance(it.message, MoveTo) and it.message.robot == arm.id:
+            d[it.line] += _park_time(planner, last_end, it.message, home)
     return out
 
 
@@ -211,14 +214,9 @@ def _spread(runs, sizes, budget):
     return sorted({runs[0]} | {runs[j] for j in pick if j < len(runs)})
 
 
-def _park_time(planner, items, item, home):
-    """Duration of an A7 to itself: a joint move from where the program was."""
-    from ambots.motion import Moves
-    msg = item.message
-    prev = None
-    for it in items:
-        if isinstance(it, Moves) and it.segments[-1].line < item.line:
-            prev = it.segments[-1].end
+def _park_time(planner, prev, msg, home):
+    """Duration of an A7 to itself: a joint move from ``prev`` (bed mm, the
+    end of the moves before it; None: from home)."""
     q = home
     if prev is not None:
         lead = planner.joint_move_to(planner.bed_mm_to_base(np.array([prev]))[0], home)
@@ -284,8 +282,7 @@ def makespan(times, arms, start_first=None):
                 m = marks[s["i"]]
                 clock_at_m = s["stretches"][-1][1] + s["cs"][m - 1] - s["cs"][s["stretches"][-1][0]]
                 msg = pt.directives[m]
-                kind = type(msg).__name__
-                if kind == "WaitFor" and by_id.get(msg.robot) == n and by_id.get(msg.other) in state:
+                if isinstance(msg, WaitFor) and by_id.get(msg.robot) == n and by_id.get(msg.other) in state:
                     other = by_id[msg.other]
                     t = (time_of_line(other, msg.line) if msg.line is not None
                          else time_of_layer(other, msg.layer))
@@ -293,7 +290,7 @@ def makespan(times, arms, start_first=None):
                         s["line"] = m - 1
                         break                       # blocked: let the others run
                     s["stretches"].append((m, max(clock_at_m, t)))      # line m (the barrier) ends then
-                elif kind == "Start" and by_id.get(msg.robot) in state:
+                elif isinstance(msg, Start) and by_id.get(msg.robot) in state:
                     o = state[by_id[msg.robot]]
                     if o["clock"] is None:
                         o["clock"] = clock_at_m + s["cs"][m] - s["cs"][m - 1]
