@@ -1,0 +1,137 @@
+"""Coordination: each arm's sliced G-code -> one program per arm (G-code plus
+A-series commands), in one of two modes.
+
+``sequential`` (the original project's behaviour): the first arm sends every
+other arm to its park position (A7), prints its whole part, parks itself and
+starts the next arm (A1); and so on down the cell's list of arms.
+
+``concurrent`` (default): all arms print the same layer at the same time,
+for any number of arms.  The spacing rule: two arms whose work comes within
+``zone`` of each other across the plane between them (their seam, or for
+two parts that meet only at a corner, the power-diagram plane between them)
+never have nozzles closer than ``zone`` to each other *measured across that
+plane* (the sum of the two nozzles' distances to it).  ``zone`` comes from
+the arms' real geometry (:func:`ambots.collision.seam_zones_mm`, pair by
+pair).  Such arms are *adjacent*.
+
+* When the adjacent arms can be given two colours so that every adjacent
+  pair has different colours (two arms; a row of arms along a beam), each
+  layer is cut into bands by distance from the nearest seam, and the two
+  colours sweep the bands in opposite directions (:mod:`ambots.coordinate.banded`).
+* Otherwise (three arms around a point, four in the corners of a bed) the
+  layer is cut into chunks by band with respect to every adjacent pair's
+  plane, and a greedy schedule on estimated durations decides which chunk
+  each arm prints when, so that no two chunks that come within the zone run
+  at the same time; an arm whose waiting position is in another's way
+  retreats to its park position (:mod:`ambots.coordinate.timeline`).
+
+Both wait (``;@A9 R<self> W<other> N<line>``) only for adjacent arms, and
+only at lines the other arm reports at once (the end of a step followed by
+its own barrier, or a ``;@A3`` report), so no wait can outlast the work it
+waits for; and every wait names work that ends earlier in the schedule, so
+no set of arms can wait for each other.  Barriers name exact lines of the
+other arm's program, which the builder knows because it writes every
+program.
+
+Park positions (:func:`~ambots.coordinate.parking.park_positions_mm`) are clear of the bed: an arm
+whose home pose hangs over the bed parks raised and retracted towards its
+own base.
+
+Coordination commands are directive lines (``;@A9 R1 W2 N120``, see
+:mod:`ambots.program`): comments to any other reader, executed by the
+firmware at that point of the program.
+
+Programs are canonical G-code re-emitted from the reader's segments
+(absolute XYZ, relative E, mm and mm/min in the bed frame), with PrusaSlicer
+style ``;LAYER_CHANGE`` comments, so any firmware or ``python -m ambots
+info`` reads them.  Slicer output is sanitised first: A-series lines in it
+are stripped and reported.
+
+The package: :mod:`~ambots.coordinate.steps` (the one intermediate form:
+the sliced G-code read once, pieces, steps with their waits and reports),
+:mod:`~ambots.coordinate.zones` (seam planes, zones, adjacency),
+:mod:`~ambots.coordinate.parking` (home and park positions, joint moves to
+and from them), one module per strategy (:mod:`~ambots.coordinate.
+sequential`, :mod:`~ambots.coordinate.banded` with the band choice in
+:mod:`~ambots.coordinate.bands`, :mod:`~ambots.coordinate.timeline` with
+its schedule in :mod:`~ambots.coordinate.schedule`) and
+:mod:`~ambots.coordinate.emit` (steps -> G-code and directives).
+"""
+
+from ambots.coordinate.banded import banded_programs
+from ambots.coordinate.emit import ArmProgram, _Writer
+from ambots.coordinate.parking import JointMoves, home_positions_mm, park_positions_mm
+from ambots.coordinate.sequential import sequential_programs
+from ambots.coordinate.steps import Sliced, _order_runs, read_sliced
+from ambots.coordinate.timeline import timeline_programs
+from ambots.coordinate.zones import adjacent_arms, seam_planes, seam_zone_for, seam_zones_for, two_colours
+
+__all__ = ["ArmProgram", "build_programs", "park_positions_mm", "home_positions_mm", "seam_zone_for",
+           "seam_zones_for", "seam_planes", "adjacent_arms", "read_sliced", "Sliced"]
+
+#: the names of before the package (``ambots.coordinate`` was one module)
+_read_layers = read_sliced
+_JointMoves = JointMoves
+
+
+def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=None, idle=()):
+    """Build every arm's program.
+
+    Parameters
+    ----------
+    sliced : {arm name: G-code text, or that text read (:class:`Sliced`,
+        :func:`read_sliced`: a job that uses the same G-code in several
+        plans reads it once)} of each part, bed frame, mm
+    parts : the :class:`~ambots.partition.Part` list (gives arm order and seam
+        planes, each with the arm on its other side)
+    cell : the cell (home and park positions come from the arms' geometry)
+    mode : ``"concurrent"`` or ``"sequential"``
+    zone_mm : how far apart (mm) two nozzles across a seam must stay
+        (concurrent mode), one figure for every pair; default: pair by pair
+        from the arms' real geometry in the poses they print these parts
+        in, :func:`seam_zones_for`
+    park : optional {arm name: (x, y, z) mm} overriding the park positions
+    idle : arms of the cell without work in this job: a one-arm job (or a
+        sequential one) sends them to their park positions first (A7), as
+        sequential mode does with the arms that wait for their turn
+
+    Returns {arm name: :class:`ArmProgram`}, in the parts' order.
+    """
+    if mode not in ("concurrent", "sequential"):
+        raise ValueError("mode must be 'concurrent' or 'sequential', got %r" % mode)
+    arms = [p.arm for p in parts]
+    idle = [a for a in idle if a.name not in {b.name for b in arms}]
+    park = park or park_positions_mm(cell, arms + idle)
+    read = {a.name: _read(sliced[a.name], "%s.gcode" % a.name) for a in arms}
+    n_layers = max([max(layers) + 1 for _, layers in read.values() if layers] or [0])
+    if mode == "sequential" or (len(arms) == 1 and idle):
+        return sequential_programs(arms, read, park, idle, mode)
+    planes = seam_planes(parts)
+    if zone_mm is None:
+        zones = seam_zones_for(cell, arms, parts)
+    else:
+        zones = {pair: float(zone_mm) for pair in planes}
+    home = home_positions_mm(cell, arms)
+    return _concurrent(arms, read, park, home, n_layers, planes, zones, JointMoves(cell, arms))
+
+
+def _read(gcode, path):
+    """A part's G-code as :class:`Sliced` (read here if it is text)."""
+    return gcode if isinstance(gcode, Sliced) else read_sliced(gcode, path)
+
+
+def _concurrent(arms, read, park, home, n_layers, planes, zones, moves=None):
+    """Banded sweeps when the adjacent arms have two colours and every arm
+    can keep clear of its seams; otherwise the scheduled timeline."""
+    names = [a.name for a in arms]
+    adjacent = adjacent_arms(arms, read, planes, zones)
+    colour = two_colours(names, adjacent)
+    if colour is not None:
+        near = {a: [planes[a, b] for b in names if b in adjacent[a]] for a in names}
+        zone = max([zones[a, b] for a in names for b in adjacent[a]] or [0.0])
+        programs = banded_programs(arms, read, park, n_layers, zone, near, colour, adjacent, home, zones)
+        if programs is not None:
+            return programs
+    # no two colours, or an arm between two seams cannot stand clear of both
+    # (their zones about as wide as its part): the scheduled timeline
+    return timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent, moves=moves)

@@ -1,0 +1,177 @@
+"""How many bands per layer a banded program has, and where their edges
+are (:func:`choose_bands`): the choice that minimises the estimated
+makespan, on every arm's work cut into pieces of at most 5 mm
+(:func:`band_stats`).
+
+Band i of an arm is [t[i], t[i+1]) (mm of distance from its nearest seam,
+t[0] = 0), band k-1 the rest.  In phase i of a layer one colour prints
+band i while the other prints band k-1-i (:func:`_phase_of`)."""
+import numpy as np
+
+from ambots.coordinate.steps import seg_time
+from ambots.coordinate.zones import distance_to_planes
+
+__all__ = ["choose_bands", "band_stats", "PIECE_S"]
+
+#: what a piece of path costs besides its time at the feedrate when the bands
+#: cut it out of its neighbours (s): a retracted travel to it, and the ramps
+#: from rest and to rest at its ends under the one timing law (about 0.3 s on
+#: the demo's layers: :mod:`ambots.estimate`'s per-move model for the UR10
+#: and the Kinova, 3 mm travels and 7-14 mm pieces)
+PIECE_S = 0.3
+#: the estimated makespans (s) and k of the last banded programs, by kind of band edges, for inspection
+_last_bands = None
+#: balanced band edges are used when their estimate is below this share of the equal widths' estimate
+_BALANCED_GAIN = 0.95
+
+
+def band_stats(arms, segs_by, planes, n_layers):
+    """{(arm, layer): (distance to the nearest seam (S,), duration (S,),
+    follows (S,))} of the arm's segments on the layer cut into pieces of at
+    most 5 mm (midpoint distance, duration), vectorised: a long line along
+    the seam's normal (a perimeter along a beam) spreads over many bands.
+    ``follows``: the piece follows on from the one before (no travel
+    between them): same segment, or the segment before ends where it starts."""
+    stats = {}
+    for a in arms:
+        for layer in range(n_layers):
+            segs = segs_by.get((a.name, layer), [])
+            if not segs:
+                continue
+            P0 = np.array([s.start for s in segs], dtype=float)
+            P1 = np.array([s.end for s in segs], dtype=float)
+            dur = np.array([seg_time([s]) for s in segs])
+            pieces = np.maximum(1, np.ceil(np.linalg.norm(P1 - P0, axis=1) / 5.0)).astype(int)
+            seg = np.repeat(np.arange(len(segs)), pieces)
+            frac = (np.arange(len(seg)) - np.repeat(np.cumsum(pieces) - pieces, pieces) + 0.5) / pieces[seg]
+            mid = P0[seg] + frac[:, None] * (P1 - P0)[seg]
+            d = (distance_to_planes(mid, planes[a.name]).min(axis=1) if planes[a.name]
+                 else np.full(len(seg), np.inf))
+            joined = np.zeros(len(segs), bool)
+            joined[1:] = np.all(P1[:-1] == P0[1:], axis=1)
+            follows = np.ones(len(seg), bool)
+            follows[0] = False
+            first_piece = np.cumsum(pieces) - pieces
+            follows[first_piece] = joined
+            stats[a.name, layer] = (d, dur[seg] / pieces[seg], follows)
+    return stats
+
+
+def _reach(arms, stats, n_layers):
+    """({arm: its reach from its nearest seam (mm)}, {arm: (distances,
+    durations)} of all its pieces within a finite distance of a seam)."""
+    far = {}
+    for a in arms:
+        ds = [float(np.max(d[np.isfinite(d)])) for (n, _), (d, _, _) in stats.items()
+              if n == a.name and np.isfinite(d).any()]
+        far[a.name] = max(ds or [0.0])
+    work = {}
+    for a in arms:
+        ds = [stats[a.name, layer] for layer in range(n_layers) if (a.name, layer) in stats]
+        d = np.concatenate([x for x, _, _ in ds]) if ds else np.zeros(0)
+        dur = np.concatenate([y for _, y, _ in ds]) if ds else np.zeros(0)
+        work[a.name] = (d[np.isfinite(d)], dur[np.isfinite(d)])
+    return far, work
+
+
+def _uniform_bounds(arms, far, zone_mm, k):
+    """Equal widths w >= zone / (k-1) (the arm's reach from its nearest seam / k when that is wider)."""
+    out = {}
+    for a in arms:
+        w = max(max(zone_mm, 1e-3) / (k - 1), far[a.name] / k)
+        out[a.name] = np.arange(k) * w
+    return out
+
+
+def _estimate(arms, stats, colour, n_layers, k, t):
+    """Estimated makespan (s) of k bands with edges ``t`` {arm: (k,)}: per
+    layer, the sum over phases of the slowest arm's band, every piece of
+    path a band cuts out counted with PIECE_S, and half a second a barrier."""
+    est = 0.0
+    for layer in range(n_layers):
+        phase_t = np.zeros(k)
+        for a in arms:
+            if (a.name, layer) not in stats:
+                continue
+            d, dur, follows = stats[a.name, layer]
+            band = np.clip(np.searchsorted(t[a.name], d, side="right") - 1, 0, k - 1)
+            # every piece of path a band cuts out starts and ends at rest, with a travel
+            fresh = ~follows
+            fresh[1:] |= band[1:] != band[:-1]
+            per_band = (np.bincount(band, weights=dur, minlength=k)
+                        + PIECE_S * np.bincount(band, weights=fresh, minlength=k))
+            phases = np.array([_phase_of(b, colour[a.name], layer, k) for b in range(k)])
+            np.maximum.at(phase_t, phases, per_band)
+        est += phase_t.sum() + k * 0.5          # a barrier costs about half a second
+    return est
+
+
+def choose_bands(arms, stats, n_layers, zone_mm, colour, adjacent, pair_zone):
+    """(k, {arm: band edges (k,)}): k in 2..12 and equal widths or balanced
+    shares (:func:`_balanced_bounds`), whichever has the least estimated
+    makespan; balanced bands only when clearly better (below
+    ``_BALANCED_GAIN`` of the equal widths' estimate): at a band edge of its
+    own work an arm waits more often than the estimate counts."""
+    global _last_bands
+    names = [a.name for a in arms]
+    far, work = _reach(arms, stats, n_layers)
+    best = {}
+    for k in range(2, 13):
+        for kind, t in (("uniform", _uniform_bounds(arms, far, zone_mm, k)),
+                        ("balanced", _balanced_bounds(names, work, adjacent, pair_zone, k))):
+            if t is None:
+                continue
+            est = _estimate(arms, stats, colour, n_layers, k, t)
+            if kind not in best or est < best[kind][0] - 1e-9:
+                best[kind] = (est, k, t)
+    _last_bands = {kind: (est, k) for kind, (est, k, _) in best.items()}
+    kind = "balanced" if "balanced" in best and best["balanced"][0] < _BALANCED_GAIN * best["uniform"][0] else "uniform"
+    return best[kind][1], best[kind][2]
+
+
+def _phase_of(band, colour, layer, k):
+    """Phase in which an arm of ``colour`` prints ``band`` on ``layer``."""
+    away = (colour + layer) % 2 == 0          # this arm sweeps away from the seam on this layer
+    return band if away else k - 1 - band
+
+
+def _balanced_bounds(names, work, adjacent, zones, k):
+    """Band boundaries {arm: (k,) mm} that split each arm's work (``work``:
+    {arm: (distance to the nearest seam (S,), duration (S,))}) into k equal
+    shares, then raised until every adjacent pair a, b keeps
+    t_a[i] + t_b[k-1-i] >= its zone for every i (t[0] = 0 stays; raising a
+    boundary only moves work to lower bands, and only widens the gaps)."""
+    t = {}
+    for n in names:
+        d, dur = work[n]
+        if not len(d) or dur.sum() <= 0:
+            t[n] = np.zeros(k)
+            continue
+        order = np.argsort(d)
+        cum = np.cumsum(dur[order]) / dur.sum()
+        q = [0.0] + [float(d[order][min(int(np.searchsorted(cum, i / k)), len(d) - 1)]) for i in range(1, k)]
+        t[n] = np.maximum.accumulate(np.maximum(np.array(q), 0.0))
+    for _ in range(10 * k * len(names) + 10):
+        changed = False
+        for a in names:
+            for b in adjacent[a]:
+                z = zones[a, b]
+                for i in range(k):
+                    j = k - 1 - i
+                    short = z - (t[a][i] + t[b][j])
+                    if short <= 1e-9:
+                        continue
+                    changed = True
+                    if i == 0:
+                        t[b][j] += short
+                    elif j == 0:
+                        t[a][i] += short
+                    else:
+                        t[a][i] += short / 2
+                        t[b][j] += short / 2
+                t[a] = np.maximum.accumulate(t[a])
+                t[b] = np.maximum.accumulate(t[b])
+        if not changed:
+            break
+    ok = all(t[a][i] + t[b][k - 1 - i] >= zones[a, b] - 1e-6 for a in names for b in adjacent[a] for i in range(k))
+    return t if ok else None

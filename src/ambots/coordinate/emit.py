@@ -1,0 +1,195 @@
+"""The emitter: steps (:mod:`ambots.coordinate.steps`) -> an arm's program,
+canonical G-code plus coordination directives.
+
+:class:`_Writer` writes canonical G-code for runs of segments (absolute XYZ,
+relative E, mm and mm/min in the bed frame), inserting a retracted travel
+wherever a run does not start where the nozzle is; :class:`Emitter` writes
+an arm's steps with it (layer changes, waits, travels, pieces, parks,
+reports), and :func:`resolve_waits` turns every wait into the ``;@A9``
+directive naming the line of the other arm's program it waits for, once
+every program is written."""
+from dataclasses import dataclass, field
+from typing import List
+
+import numpy as np
+
+from ambots.program import directive
+from ambots.protocol import MoveTo, SendPosition, WaitFor
+
+from ambots.coordinate.steps import END
+
+__all__ = ["ArmProgram", "Emitter", "resolve_waits"]
+
+
+@dataclass
+class ArmProgram:
+    """One arm's program.  ``lines`` are G-code and directive lines without
+    line breaks; line numbers are 1-based positions in ``lines``."""
+    arm: object
+    mode: str
+    lines: List[str] = field(default_factory=list)
+    removed: list = field(default_factory=list)      #: (line, text) stripped from the slicer output
+    layers: int = 0
+    phases: int = 1
+    start_first: bool = True                         #: the front end starts this arm with A1
+
+    @property
+    def text(self):
+        return "\n".join(self.lines) + "\n"
+
+
+
+class _Writer:
+    """Emits canonical G-code for runs of segments, inserting a retracted
+    travel wherever a run does not start where the nozzle is."""
+
+    def __init__(self, retract_mm=0.8, retract_feed=2100.0, travel_feed=9000.0, short_travel_mm=2.0, hop_mm=0.0):
+        self.lines = []
+        self.pos = None
+        #: the nozzle was sent elsewhere by a directive (A7 to a park position)
+        #: after a retraction: the next travel starts with a move straight over
+        #: its target and ends with the unretraction
+        self.parked = False
+        self.retract_mm, self.retract_feed, self.travel_feed = retract_mm, retract_feed, travel_feed
+        #: travels shorter than this within a layer are not retracted or lifted
+        #: (the slicers' ``retract_before_travel``)
+        self.short_travel_mm = short_travel_mm
+        #: lift during a retracted travel (the slicers' ``z_hop``; 0 as the
+        #: built-in slicer's default: two more moves from rest to rest per travel
+        #: under the one timing law, about 0.1 s each)
+        self.hop_mm = hop_mm
+
+    def emit(self, line):
+        self.lines.append(line)
+
+    def travel_to(self, p, feed=None):
+        if self.parked:
+            self.emit("G0 X%.3f Y%.3f Z%.3f F%.0f" % (p[0], p[1], p[2] + 10.0, feed or self.travel_feed))
+            self.emit("G0 Z%.3f" % p[2])
+            self.emit("G1 E%.5f F%.0f" % (self.retract_mm, self.retract_feed))
+            self.parked = False
+            self.pos = tuple(p)
+            return
+        if self.pos is not None and np.allclose(self.pos, p, atol=1e-6):
+            return
+        if (self.pos is not None and abs(self.pos[2] - p[2]) < 1e-6
+                and np.hypot(self.pos[0] - p[0], self.pos[1] - p[1]) < self.short_travel_mm):
+            self.emit("G0 X%.3f Y%.3f F%.0f" % (p[0], p[1], feed or self.travel_feed))
+        elif self.pos is not None:
+            self.emit("G1 E-%.5f F%.0f" % (self.retract_mm, self.retract_feed))
+            if self.hop_mm > 0 or abs(self.pos[2] - p[2]) > 1e-6:
+                lift = max(self.pos[2], p[2]) + self.hop_mm        # clear what was printed
+                self.emit("G0 Z%.3f F%.0f" % (lift, feed or self.travel_feed))
+                self.emit("G0 X%.3f Y%.3f F%.0f" % (p[0], p[1], feed or self.travel_feed))
+                if lift != p[2]:
+                    self.emit("G0 Z%.3f" % p[2])
+            else:
+                self.emit("G0 X%.3f Y%.3f F%.0f" % (p[0], p[1], feed or self.travel_feed))
+            self.emit("G1 E%.5f F%.0f" % (self.retract_mm, self.retract_feed))
+        else:
+            self.emit("G0 X%.3f Y%.3f Z%.3f F%.0f" % (p[0], p[1], p[2], feed or self.travel_feed))
+        self.pos = tuple(p)
+
+    def park(self, arm, xyz, lift_mm=10.0):
+        """Retract, lift clear of the part and go to ``xyz`` (mm; an A7
+        directive: a joint move of the firmware's planner)."""
+        if self.pos is not None and not self.parked:
+            self.emit("G1 E-%.5f F%.0f" % (self.retract_mm, self.retract_feed))
+            self.emit("G0 Z%.3f F%.0f" % (self.pos[2] + lift_mm, self.travel_feed))
+        x, y, z = xyz
+        self.emit(directive(MoveTo(arm.id, round(float(x), 3), round(float(y), 3), round(float(z), 3))))
+        self.parked = self.pos is not None
+
+    def segments(self, segs):
+        for s in segs:
+            moved = s.start != s.end
+            if not moved:
+                if s.e:
+                    self.emit("G1 E%.5f F%.0f" % (s.e, s.feedrate or self.retract_feed))
+                continue
+            if self.pos is None or not np.allclose(self.pos, s.start, atol=1e-6):
+                self.travel_to(s.start)
+            x, y, z = s.end
+            if s.extrude:
+                self.emit("G1 X%.3f Y%.3f Z%.3f E%.5f F%.0f" % (x, y, z, s.e, s.feedrate))
+            else:
+                self.emit("G0 X%.3f Y%.3f Z%.3f F%.0f" % (x, y, z, s.feedrate or self.travel_feed))
+            self.pos = s.end
+
+
+def _header(arm, mode, extra=()):
+    return ["; ambots program for arm %s (R%d), mode %s" % (arm.name, arm.id, mode),
+            "; frame: print bed, mm; absolute XYZ, relative E", *extra, "G21", "G90", "M83"]
+
+
+def _report_line(lines, is_wait, target):
+    """The line at which an arm reports having done ``target`` (1-based): an
+    arm reports its last completed line when it reaches the first barrier
+    line of a run of them, never while it waits there, so a target inside a
+    run of barrier lines is moved back to the line before the run (the same
+    motion done)."""
+    while target > 0 and is_wait[target - 1]:
+        target -= 1
+    return target
+
+
+class Emitter:
+    """One arm's program, written step by step (:class:`~ambots.coordinate.
+    steps.Step`).  A wait is a placeholder (None) in ``lines`` until
+    :func:`resolve_waits`; ``pos`` is where the nozzle is (mm; None before
+    the first move), which a strategy may need to order its next pieces."""
+
+    def __init__(self, arm, mode, extra=()):
+        self.arm = arm
+        self.writer = _Writer()
+        for line in _header(arm, mode, extra):
+            self.writer.emit(line)
+        self.marks = {}          #: mark -> line number reached (1-based)
+        self.waits = []          #: (index in lines, Wait)
+
+    @property
+    def lines(self):
+        return self.writer.lines
+
+    @property
+    def pos(self):
+        return self.writer.pos
+
+    def step(self, st):
+        w = self.writer
+        for msg in st.directives:
+            w.emit(directive(msg))
+        for z in st.layers:
+            w.emit(";LAYER_CHANGE")
+            w.emit(";Z:%.3f" % z)
+        for wait in st.waits:
+            self.waits.append((len(w.lines), wait))
+            w.lines.append(None)
+        if st.travel is not None:
+            w.travel_to(st.travel)
+        if st.pieces:
+            w.segments(st.pieces)
+        if st.park is not None:
+            w.park(self.arm, st.park)
+        if st.report:
+            w.emit(directive(SendPosition(st.report)))
+        if st.mark is not None:
+            self.marks[st.mark] = len(w.lines)
+
+    def steps(self, steps):
+        for st in steps:
+            self.step(st)
+        return self
+
+
+def resolve_waits(emitters):
+    """Fill in every emitter's waits ({arm name: :class:`Emitter`}): the
+    line of the other arm's program at its mark (or its last line), moved
+    back before a run of waits (:func:`_report_line`)."""
+    is_wait = {n: [line is None for line in e.lines] for n, e in emitters.items()}
+    for e in emitters.values():
+        for index, wait in e.waits:
+            other = emitters[wait.other]
+            target = len(other.lines) if wait.mark == END else other.marks[wait.mark]
+            target = _report_line(other.lines, is_wait[wait.other], target)
+            e.lines[index] = directive(WaitFor(e.arm.id, other.arm.id, line=target))

@@ -1,0 +1,124 @@
+"""Where the arms wait when they do not print: their home poses, their park
+positions clear of the bed (:func:`park_positions_mm`), and the joint moves
+between a park position (or home) and the part (:class:`JointMoves`), which
+the timeline counts in its steps' footprints.
+
+Units: mm in the bed frame."""
+import numpy as np
+
+__all__ = ["home_positions_mm", "park_positions_mm", "JointMoves"]
+
+
+def home_positions_mm(cell, arms):
+    """Each arm's nozzle at its home pose, in bed-frame mm."""
+    from ambots.model import arm_kinematics
+    inv = np.linalg.inv(cell.bed.pose)
+    out = {}
+    for arm in arms:
+        T = arm.base_pose @ arm_kinematics(arm).fk(np.asarray(arm.profile.home))
+        out[arm.name] = (inv[:3, :3] @ T[:3, 3] + inv[:3, 3]) * 1000.0
+    return out
+
+
+_PARKS = {}
+
+
+def park_positions_mm(cell, arms, margin_mm=60.0):
+    """Where each arm parks its nozzle (bed-frame mm): clear of the bed, on
+    the arm's own side.
+
+    From the arm's base (projected on the bed) towards the nearest point of
+    the bed, the nozzle stops ``margin_mm`` short of the bed's edge, 50 mm
+    over the printable height, so that the arm (base, links and nozzle)
+    stays outside the bed and out of every other arm's way.  If the arm
+    cannot reach that point with the nozzle down, points nearer to its base
+    (or up to 30 mm nearer the bed) and higher are tried; an arm whose base
+    stands over the bed, or that reaches none of them, parks at home."""
+    from ambots.model import arm_kinematics
+    from ambots.partition import arm_sites_mm
+    from ambots.workspace import down_in_base, world_to_base
+    arms = list(arms)
+    key = (getattr(cell, "path", cell.name), tuple(a.name for a in arms), float(margin_mm))
+    if key in _PARKS:
+        return {k: v.copy() for k, v in _PARKS[key].items()}
+    home = home_positions_mm(cell, arms)
+    bx, by = cell.bed.size[0] * 500.0, cell.bed.size[1] * 500.0
+    sites = dict(zip([a.name for a in arms], arm_sites_mm(cell, arms)))
+    out = {}
+    for arm in arms:
+        h = np.asarray(home[arm.name], dtype=float)
+        out[arm.name] = h
+        site = np.asarray(sites[arm.name], dtype=float)
+        nearest = np.clip(site, [-bx, -by], [bx, by])
+        gap = float(np.linalg.norm(nearest - site))
+        if gap < 1e-6:
+            continue                                  # the base stands over the bed
+        u = (nearest - site) / gap
+        # where the ray from the base enters the bed grown by the margin
+        lo, hi = np.array([-bx - margin_mm, -by - margin_mm]), np.array([bx + margin_mm, by + margin_mm])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (lo - site) / u, (hi - site) / u
+        t_in = float(np.nanmax(np.where(np.abs(u) > 1e-12, np.minimum(t1, t2), -np.inf)))
+        z0 = cell.bed.max_height * 1000.0 + 50.0
+        cands = [np.array([*(site + u * r), z]) for r in (t_in, t_in - 40.0, t_in + 30.0, t_in - 80.0, t_in - 120.0)
+                 if r >= 100.0 for z in (z0, z0 + 50.0, z0 + 100.0)]
+        if not cands:
+            continue
+        P = np.array(cands)
+        world = (P / 1000.0) @ cell.bed.pose[:3, :3].T + cell.bed.pose[:3, 3]
+        _, ok, _ = arm_kinematics(arm).ik_batch(world_to_base(arm, world), np.asarray(arm.profile.home),
+                                                down_in_base(arm))
+        if ok.any():
+            out[arm.name] = P[int(np.argmax(ok))]
+    _PARKS[key] = out
+    return {k: v.copy() for k, v in out.items()}
+
+
+class JointMoves:
+    """Where the nozzle goes (bed frame, mm) on the joint moves the firmware
+    makes between the park position (or home) and the part: a move to an
+    A7 target, and a travel whose start is not where the nozzle is, are
+    straight lines in joint space (:meth:`ambots.motion.MotionPlanner.
+    joint_move_to`, nozzle-down IK seeded with the joints it starts from),
+    which bulge off the straight line between their ends: a Panda coming
+    down from its park position passed 21 mm nearer the seam than both
+    ends.  :meth:`path` samples such a move; the timeline counts its points
+    below the printable height in the step's footprint."""
+
+    def __init__(self, cell, arms, samples=32):
+        from ambots.model import arm_kinematics
+        self.arm = {a.name: a for a in arms}
+        self.kin = {a.name: arm_kinematics(a) for a in arms}
+        self.bed = np.asarray(cell.bed.pose, dtype=float)
+        self.top = cell.bed.max_height * 1000.0
+        self.samples = int(samples)
+        self._cache = {}
+
+    def _ik(self, name, p_mm, seed):
+        from ambots.workspace import down_in_base, world_to_base
+        arm = self.arm[name]
+        world = (np.asarray(p_mm, dtype=float) / 1000.0) @ self.bed[:3, :3].T + self.bed[:3, 3]
+        Q, ok, _ = self.kin[name].ik_batch(world_to_base(arm, world[None]), np.asarray(seed, dtype=float),
+                                           down_in_base(arm))
+        return Q[0] if ok[0] else None
+
+    def path(self, name, a_mm, b_mm):
+        """Nozzle positions (K, 3), bed mm, on the joint move from nozzle-down
+        at ``a_mm`` (None: the arm's home pose) to nozzle-down at ``b_mm``,
+        only those at most at the printable height; empty if either end is
+        out of reach (the firmware reports that itself)."""
+        key = (name, None if a_mm is None else tuple(np.round(a_mm, 6)), tuple(np.round(b_mm, 6)))
+        if key in self._cache:
+            return self._cache[key]
+        home = np.asarray(self.arm[name].profile.home, dtype=float)
+        qa = home if a_mm is None else self._ik(name, a_mm, home)
+        qb = None if qa is None else self._ik(name, b_mm, qa)
+        out = np.zeros((0, 3))
+        if qb is not None:
+            u = np.linspace(0.0, 1.0, self.samples)[:, None]
+            T = self.arm[name].base_pose @ self.kin[name].fk_batch((1.0 - u) * qa + u * qb)
+            inv = np.linalg.inv(self.bed)
+            P = (T[:, :3, 3] @ inv[:3, :3].T + inv[:3, 3]) * 1000.0
+            out = P[P[:, 2] <= self.top]
+        self._cache[key] = out
+        return out

@@ -1,0 +1,231 @@
+"""The timeline's greedy schedule (:class:`Schedule`): every arm at once on
+estimated durations, each starting a chunk of its layer when no adjacent
+arm's current step is within the pair's zone of it across their plane; an
+arm in another's way retreats to its park position.  See
+:func:`ambots.coordinate.timeline.timeline_programs`.
+
+Units: mm, s."""
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ambots.coordinate.steps import _order_runs, seg_time
+
+__all__ = ["Schedule", "Act"]
+
+#: estimated nozzle speed of travels (mm/s) and fixed cost (s) of a
+#: retracted travel, and of a joint move (to or from a park position)
+_TRAVEL_MM_S, _TRAVEL_S, _JOINT_MM_S, _JOINT_S = 150.0, 0.1, 100.0, 2.0
+
+
+@dataclass
+class Act:
+    """One step of an arm's schedule: ``kind`` "chunk" (print ``segs``),
+    "retreat" (to the park position and back later) or "park" (the end)."""
+    kind: str
+    layer: int
+    S: float                     #: scheduled start (s)
+    C: float                     #: scheduled end (s)
+    fp: np.ndarray               #: distance (mm) to each adjacent arm's plane: closest over the step
+    segs: list = field(default_factory=list)
+    waits: dict = field(default_factory=dict)    #: {other arm: index of its step to wait for}
+    report: int = 0              #: the arm that first waits for this step's end (robot id), 0: none
+
+
+def _path_time(pos, segs):
+    """Estimated seconds to print ``segs`` (in order) from ``pos`` (None: a
+    joint move from somewhere else)."""
+    t = seg_time(segs)
+    here = None if pos is None else np.asarray(pos, dtype=float)
+    for s in segs:
+        start = np.asarray(s.start, dtype=float)
+        if here is None:
+            t += _JOINT_S
+        else:
+            gap = float(np.linalg.norm(start - here))
+            if gap > 1e-6:
+                t += gap / _TRAVEL_MM_S + (_TRAVEL_S if gap >= 2.0 else 0.0)
+        here = np.asarray(s.end, dtype=float)
+    return t
+
+
+class Schedule:
+    """One greedy schedule of the chunks (:meth:`run` -> {arm: [Act]}).
+    ``seams``: the arms' planes and zones (:class:`~ambots.coordinate.
+    timeline.Seams`); ``chunks``: {(arm, layer): [(pieces, closest distance
+    to each plane, level)]}; ``priority``: an arm leaves alone what an
+    adjacent arm of higher rank still has to print within the zone."""
+
+    def __init__(self, seams, chunks, home, park, n_layers, priority):
+        self.seams, self.chunks, self.park, self.n_layers, self.priority = seams, chunks, park, n_layers, priority
+        names = self.names = seams.names
+        self.acts = {n: [] for n in names}
+        self.pos = {n: np.asarray(home[n], dtype=float) for n in names}           # where the nozzle waits
+        self.pos_d = {n: seams.dist(n, self.pos[n])[0] if len(seams.N[n]) else np.zeros(0) for n in names}
+        self.first = {n: True for n in names}                                      # still at home
+        self.parked = {n: False for n in names}                                    # at the park position
+        self.layer_of = {n: 0 for n in names}
+        self.left = {n: list(range(len(chunks[n, 0]))) if n_layers else [] for n in names}
+        self.layer_end = {}                                                        # (arm, layer) -> time printed
+        self.done = {n: False for n in names}
+        self.t_free = {n: 0.0 for n in names}
+
+    # ---- the state
+    def state_d(self, b, t):
+        if self.acts[b] and self.acts[b][-1].C > t:
+            return self.acts[b][-1].fp
+        return self.pos_d[b]
+
+    def clash(self, n, fp, t):
+        """Arms whose current state is too near a step of arm n with footprint fp at time t."""
+        sm = self.seams
+        out = []
+        for i, b in enumerate(sm.nbrs[n]):
+            if fp[i] + self.state_d(b, t)[sm.where[n][b]] < sm.Z[n][i] - 1e-9:
+                out.append(b)
+        return out
+
+    def start(self, n, act, end_pos, at_park):
+        self.acts[n].append(act)
+        self.t_free[n] = act.C
+        self.pos[n] = np.asarray(end_pos, dtype=float)
+        self.pos_d[n] = np.full(len(self.seams.N[n]), np.inf) if at_park else self.seams.dist(n, self.pos[n])[0]
+        self.parked[n] = at_park
+        self.first[n] = False
+
+    def to_park(self, n, t, kind):
+        p = np.asarray(self.park[n], dtype=float)
+        dur = float(np.linalg.norm(p - self.pos[n])) / _JOINT_MM_S + _JOINT_S
+        fp = self.pos_d[n].copy()
+        if not self.parked[n]:                     # the joint move up there (lifted 10 mm from the part)
+            fp = np.minimum(fp, self.seams.path_d(n, None, p) if self.first[n] else
+                            self.seams.path_d(n, self.pos[n] + (0.0, 0.0, 10.0), p))
+        self.start(n, Act(kind, self.layer_of[n], t, t + dur, fp), p, True)
+
+    def layer_ready(self, n, layer, t):
+        """Every adjacent arm has printed ``layer``, by time t."""
+        return all(self.done[b] or self.layer_of[b] > layer or
+                   (self.layer_of[b] == layer and not self.left[b] and self.layer_end.get((b, layer), 0.0) <= t)
+                   for b in self.seams.nbrs[n])
+
+    def candidates(self, n, t):
+        """(chunk index, footprint, clashing arms, score) of arm n's chunks left in its layer."""
+        out = []
+        for ci in self.left[n]:
+            ps, dmin, level = self.chunks[n, self.layer_of[n]][ci]
+            fp = np.minimum(dmin, self.pos_d[n])
+            if self.first[n] or self.parked[n]:         # the joint move there, from home or the park position
+                p = np.asarray(_order_runs(ps, None)[0].start, dtype=float)
+                fp = np.minimum(fp, self.seams.path_d(n, None, p) if self.first[n] else
+                                self.seams.path_d(n, self.park[n], p + (0.0, 0.0, 10.0)))
+            near = min(float(np.linalg.norm(np.subtract(ps[0].start, self.pos[n]))),
+                       float(np.linalg.norm(np.subtract(ps[-1].end, self.pos[n]))))
+            out.append((ci, fp, self.clash(n, fp, t), (level, near)))
+        return out
+
+    def rank(self, n):
+        """Priority in the current layer: the cell's order on even layers,
+        reversed on odd ones (the last arm of a layer goes on first)."""
+        i = self.names.index(n)
+        return i if self.layer_of[n] % 2 == 0 else len(self.names) - 1 - i
+
+    def before(self, n, fp):
+        """True if a step with footprint fp would come within the zone of work
+        still left in this layer to an adjacent arm of higher priority: that
+        work goes first, so an arm sweeps towards a seam behind its
+        neighbour instead of both racing to it."""
+        sm = self.seams
+        for i, b in enumerate(sm.nbrs[n]):
+            if (self.done[b] or self.layer_of[b] != self.layer_of[n] or self.rank(b) > self.rank(n)
+                    or not self.left[b]):
+                continue
+            j = sm.where[n][b]
+            rest = min(self.chunks[b, self.layer_of[b]][ci][1][j] for ci in self.left[b])
+            if fp[i] + rest < sm.Z[n][i] - 1e-9:
+                return True
+        return False
+
+    # ---- the moves
+    def try_step(self, n, t):
+        if self.done[n]:
+            return False
+        if self.layer_of[n] >= self.n_layers:
+            self.to_park(n, t, "park")
+            self.done[n] = True
+            return True
+        if not self.left[n]:
+            if self.layer_ready(n, self.layer_of[n], t):
+                self.layer_of[n] += 1
+                self.left[n] = (list(range(len(self.chunks[n, self.layer_of[n]])))
+                                if self.layer_of[n] < self.n_layers else [])
+                return True
+            return False
+        ok = [c for c in self.candidates(n, t) if not c[2] and not (self.priority and self.before(n, c[1]))]
+        if not ok:
+            return False
+        ci, fp, _, _ = min(ok, key=lambda c: c[3])
+        ps, _, _ = self.chunks[n, self.layer_of[n]][ci]
+        here = None if self.first[n] or self.parked[n] else self.pos[n]
+        segs = _order_runs(ps, None if here is None else tuple(here))
+        dur = _path_time(here, segs)
+        self.left[n].remove(ci)
+        self.start(n, Act("chunk", self.layer_of[n], t, t + dur, fp, segs), segs[-1].end, False)
+        if not self.left[n]:
+            self.layer_end[n, self.layer_of[n]] = t + dur
+        return True
+
+    def in_the_way(self, n, t, waiting):
+        """Arms standing still (waiting too) in the way of one of arm n's chunks."""
+        best = None
+        for ci, fp, who, score in self.candidates(n, t):
+            if who and all(b in waiting and not (self.acts[b] and self.acts[b][-1].C > t) for b in who):
+                if best is None or (len(who), score) < best[0]:
+                    best = ((len(who), score), who)
+        return [] if best is None else best[1]
+
+    def retreats(self, t, waiting, running):
+        """The arms to send to their park positions at time t: those that have
+        finished their layer and stand in someone's way; those in the way
+        when nobody can go on."""
+        retreat = set()
+        for n in waiting:
+            for b in self.in_the_way(n, t, waiting):
+                if (not self.left[b] or not running) and not self.parked[b]:
+                    retreat.add(b)
+        if not retreat and not running:
+            for n in waiting:                     # nobody can go on: clear the way of the first waiting arm
+                who = [b for c in self.candidates(n, t) for b in c[2] if not self.parked[b]]
+                if self.left[n] and who:
+                    retreat.add(who[0])
+                    break
+            if not retreat:
+                raise RuntimeError("coordinate: the schedule is stuck at %.1f s: %s" % (
+                    t, {n: (self.layer_of[n], len(self.left[n])) for n in waiting}))
+        return retreat
+
+    def run(self):
+        names = self.names
+        guard = 0
+        while not all(self.done.values()):
+            guard += 1
+            if guard > 10_000_000:
+                raise RuntimeError("coordinate: the schedule does not progress")
+            t = min(self.t_free[n] for n in names if not self.done[n])
+            moved = True
+            while moved:
+                moved = False
+                for n in names:
+                    if not self.done[n] and self.t_free[n] <= t and self.try_step(n, t):
+                        moved = True
+            waiting = [n for n in names if not self.done[n] and self.t_free[n] <= t]
+            if not waiting:
+                continue
+            running = [self.acts[n][-1].C for n in names if self.acts[n] and self.acts[n][-1].C > t]
+            retreat = self.retreats(t, waiting, running)
+            if retreat:
+                for b in sorted(retreat, key=names.index):
+                    self.to_park(b, t, "retreat")
+                continue
+            for n in waiting:
+                self.t_free[n] = min(running)
+        return self.acts

@@ -1,0 +1,129 @@
+"""The one intermediate form between the strategies and the emitter.
+
+* The sliced G-code of each part, read once (:class:`Sliced`: the lines
+  stripped from it, and its extrusion and travel :class:`~ambots.gcode.
+  Segment` s by layer; :func:`read_sliced`).
+* *Pieces*: those segments, cut where bands or planes cut them
+  (:func:`cut_segment`) and ordered for short travels (:func:`_order_runs`).
+* *Steps*: what an arm's program does, in order (:class:`Step`): the layer
+  changes that open it, the *waits* before it (:class:`Wait`: for a *mark*
+  of another arm's program, or its end), a travel, the pieces printed, a
+  move to the park position, a *report* (``;@A3``) and the mark that names
+  the line reached.  :mod:`ambots.coordinate.emit` writes steps as G-code
+  and directives and turns waits into ``;@A9`` lines naming the other
+  arm's lines.
+
+Units: mm and mm/min in the bed frame, as the G-code."""
+from dataclasses import dataclass, field
+from typing import Dict, List, NamedTuple, Optional
+
+import numpy as np
+
+from ambots.gcode import Segment, parse_gcode_text
+from ambots.program import sanitize_gcode
+
+__all__ = ["Sliced", "read_sliced", "Wait", "Step", "END", "cut_segment", "seg_time"]
+
+
+class Sliced(NamedTuple):
+    """One part's sliced G-code, read: ``removed`` the (line, text) stripped
+    from it (A-series lines), ``layers`` {layer: [Segment]}."""
+    removed: list
+    layers: Dict[int, List[Segment]]
+
+
+def read_sliced(text, path):
+    """Sanitised slicer G-code -> :class:`Sliced` (parsed once: a job passes
+    this on instead of the text when several plans use the same G-code)."""
+    clean, removed = sanitize_gcode(text, path, trusted=False, mode="strip")
+    layers: Dict[int, List[Segment]] = {}
+    for ev in parse_gcode_text(clean, path):
+        if type(ev) is Segment:
+            layers.setdefault(max(ev.layer, 0), []).append(ev)
+    return Sliced(removed, layers)
+
+
+#: the mark of a program's last line (an arm reports it when it is done)
+END = "end"
+
+
+@dataclass
+class Wait:
+    """Wait (``;@A9``) until arm ``other`` has reached its ``mark`` (or END)."""
+    other: str
+    mark: object
+
+
+@dataclass
+class Step:
+    """One step of an arm's program; the emitter writes its parts in this
+    order: directives, layer changes, waits, travel, pieces, park, report,
+    mark."""
+    directives: list = field(default_factory=list)   #: protocol messages for other arms (A7, A1)
+    layers: List[float] = field(default_factory=list)  #: a ``;LAYER_CHANGE`` / ``;Z:`` pair per z (mm)
+    waits: List[Wait] = field(default_factory=list)
+    travel: Optional[tuple] = None                   #: travel here first (mm)
+    pieces: list = field(default_factory=list)       #: segments printed
+    park: Optional[tuple] = None                     #: then go to this park position (mm; A7)
+    report: int = 0                                  #: then report (A3) to this robot id (0: none)
+    mark: object = None                              #: then name the line reached (for other arms' waits)
+
+
+def cut_segment(seg, cuts):
+    """``seg`` cut at the fractions ``cuts`` (0 < u < 1) of its length; E is
+    shared in proportion to length."""
+    if not cuts:
+        return [seg]
+    a, b = np.array(seg.start, dtype=float), np.array(seg.end, dtype=float)
+    ts = [0.0] + sorted(set(cuts)) + [1.0]
+    return [seg._replace(start=tuple(a + (b - a) * t0), end=tuple(a + (b - a) * t1), e=seg.e * (t1 - t0))
+            for t0, t1 in zip(ts[:-1], ts[1:])]
+
+
+def seg_time(segs):
+    """Seconds of ``segs`` at their feedrates (E-only moves at their E speed)."""
+    t = 0.0
+    for s in segs:
+        L = float(np.linalg.norm(np.subtract(s.end, s.start)))
+        f = s.feedrate if s.feedrate > 0 else 1800.0
+        t += (L if L > 0 else abs(s.e)) / f * 60.0
+    return t
+
+
+def _order_runs(segs, pos):
+    """Extrusion pieces of one step -> the same pieces in a short-travel order.
+
+    Travels and pure retractions are dropped (the writer makes its own);
+    extruding segments are grouped into runs (maximal chains that the
+    slicer printed end to start), and the runs are visited greedily, nearest
+    end first, a run reversed when its far end is nearer.  Deposit geometry
+    and E are unchanged; only the order and direction of runs differ.
+    ``pos``: the nozzle's position (mm) before the step, or None."""
+    runs = []
+    for s in segs:
+        if not s.extrude or s.start == s.end:
+            continue
+        if runs and runs[-1][-1].end == s.start:
+            runs[-1].append(s)
+        else:
+            runs.append([s])
+    if len(runs) < 2:
+        return [s for r in runs for s in r]
+    heads = np.array([r[0].start for r in runs], dtype=float)
+    tails = np.array([r[-1].end for r in runs], dtype=float)
+    left = np.ones(len(runs), dtype=bool)
+    here = np.asarray(pos if pos is not None else runs[0][0].start, dtype=float)
+    out = []
+    for _ in range(len(runs)):
+        dh = np.where(left, np.linalg.norm(heads - here, axis=1), np.inf)
+        dt = np.where(left, np.linalg.norm(tails - here, axis=1), np.inf)
+        i, j = int(np.argmin(dh)), int(np.argmin(dt))
+        if dt[j] < dh[i] - 1e-9:
+            left[j] = False
+            out.extend(s._replace(start=s.end, end=s.start) for s in reversed(runs[j]))
+            here = heads[j]
+        else:
+            left[i] = False
+            out.extend(runs[i])
+            here = tails[i]
+    return out

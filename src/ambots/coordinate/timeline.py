@@ -1,0 +1,197 @@
+"""The scheduled timeline: concurrent programs for any adjacency (an odd
+cycle of adjacent arms: three or more around a point, four in the corners
+of a bed), and for rows the banded sweeps cannot serve.  Each arm's layer
+is cut into chunks (:func:`_chunks`), a greedy schedule on estimated
+durations orders them (:class:`~ambots.coordinate.schedule.Schedule`), and
+the order becomes barriers (:func:`_barriers`) in the programs
+(:func:`timeline_programs`)."""
+import bisect
+
+import numpy as np
+
+from ambots.coordinate.emit import ArmProgram, Emitter, resolve_waits
+from ambots.coordinate.schedule import Schedule
+from ambots.coordinate.steps import Step, Wait, cut_segment
+
+__all__ = ["timeline_programs", "Seams"]
+
+#: the last schedule :func:`timeline_programs` made ({arm: [Act]}), for inspection
+_last_schedule = None
+
+
+def timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4, priority_only=False,
+                      moves=None):
+    """Any adjacency (an odd cycle of adjacent arms: three or more around a point).
+
+    Each arm's layer is cut into *chunks*: pieces of its extrusions grouped
+    by band (width zone / ``bands``) of distance to each adjacent arm's plane,
+    all pieces beyond the zone in one band; planes of pairs that are within
+    the zone of each other everywhere (a strip along a seam) cut nothing,
+    since those two arms never print at once.  A greedy schedule on
+    estimated durations then runs every arm at once: an arm starts a chunk
+    (the travel to it included) when, for every adjacent arm, the sum of the
+    two distances to their plane over the chunk and over what the other arm
+    is doing (printing a chunk, or waiting at the end of one) is at least the
+    pair's zone; chunks nearest a seam first, the nearest to the nozzle among
+    equals.  A step's footprint covers the joint moves to and from the park
+    position (or from home) too, as the firmware makes them (``moves``,
+    :class:`~ambots.coordinate.parking.JointMoves`: their points below the
+    printable height).  A layer starts when the adjacent arms have finished the previous one.  An
+    arm with nothing to do that stands in another's way (or when nobody can
+    go on) retreats to its park position.  The schedule is made
+    twice, once with the arms' priorities (an arm leaves alone what an
+    adjacent arm earlier in the cell's list, later on odd layers, still has
+    to print within the zone, so that arm sweeps away from their seam and
+    this one follows), once without, and the shorter is kept.
+
+    The order becomes barriers: before each step an arm waits for every
+    adjacent arm to have completed the steps that, in the schedule, ended by
+    the time this step starts (each such step ends with an ``;@A3`` report).
+    Whatever the real durations, an arm is then never behind its place in
+    the schedule relative to another, and every pair of steps running at
+    the same time was checked in the schedule; waits only name steps that
+    end earlier in the schedule, so they cannot form a cycle."""
+    global _last_schedule
+    seams = Seams(arms, read, planes, zones, adjacent, moves)
+    chunks = _chunks(seams, read, n_layers, bands)
+    # the cell's order as priorities or none: keep the shorter schedule
+    acts = min((Schedule(seams, chunks, home, park, n_layers, p).run()
+                for p in (True, False) if p or not priority_only),
+               key=lambda acts: max((a[-1].C for a in acts.values() if a), default=0.0))
+    _last_schedule = acts
+    arm_of = {a.name: a for a in arms}
+    _barriers(acts, seams.nbrs, arm_of)
+    emitters = {}
+    for n in seams.names:
+        extra = ["; seam zones %s mm, %d chunk band(s) per seam, scheduled"
+                 % (", ".join("%s %.1f" % (b, zones[n, b]) for b in seams.nbrs[n]) or "-", bands)]
+        emitters[n] = Emitter(arm_of[n], "concurrent", extra).steps(_steps(acts[n], seams.names, park[n], n_layers))
+    resolve_waits(emitters)
+    return {n: ArmProgram(arm_of[n], "concurrent", emitters[n].lines, read[n][0], n_layers, bands + 1,
+                          start_first=True) for n in seams.names}
+
+
+class Seams:
+    """Each arm's adjacent arms (``nbrs``, in the cell's order; ``where[n][b]``:
+    n's index in b's list), the planes between them (normals ``N[n]`` (P, 3),
+    offsets ``O[n]`` (P,)), their zones ``Z[n]`` (P,), and which planes are
+    ``useful``: a pair whose parts never get a zone apart anywhere (a strip
+    along a seam) can never print at once, so where an arm is across that
+    plane makes no difference, and those planes neither cut chunks nor
+    order them.  ``moves``: :class:`~ambots.coordinate.parking.JointMoves`
+    (or None)."""
+
+    def __init__(self, arms, read, planes, zones, adjacent, moves=None):
+        names = self.names = [a.name for a in arms]
+        self.moves = moves
+        self.nbrs = {n: [b for b in names if b in adjacent[n]] for n in names}
+        self.where = {n: {b: self.nbrs[b].index(n) for b in self.nbrs[n]} for n in names}
+        self.N = {n: np.array([planes[n, b][0] for b in self.nbrs[n]], dtype=float).reshape(-1, 3) for n in names}
+        self.O = {n: np.array([planes[n, b][1] for b in self.nbrs[n]], dtype=float) for n in names}
+        self.Z = {n: np.array([zones[n, b] for b in self.nbrs[n]], dtype=float) for n in names}
+        reach = {}
+        for n in names:
+            pts = np.array([s.start for layer in read[n][1].values() for s in layer if s.extrude]
+                           + [s.end for layer in read[n][1].values() for s in layer if s.extrude], dtype=float)
+            reach[n] = self.dist(n, pts).max(axis=0) if len(pts) and len(self.N[n]) else np.zeros(len(self.N[n]))
+        self.useful = {n: np.array([reach[n][i] + reach[b][self.where[n][b]] >= self.Z[n][i]
+                                    for i, b in enumerate(self.nbrs[n])], dtype=bool) for n in names}
+
+    def dist(self, n, pts):
+        """Signed distances (K, P) of points to arm n's planes."""
+        return np.asarray(pts, dtype=float).reshape(-1, 3) @ self.N[n].T - self.O[n]
+
+    def path_d(self, n, a, b):
+        """Closest distance to each adjacent arm's plane on arm n's joint move
+        from ``a`` (None: home) to ``b`` below the printable height (inf: none)."""
+        P = self.moves.path(n, a, b) if self.moves is not None and len(self.N[n]) else np.zeros((0, 3))
+        return self.dist(n, P).min(axis=0) if len(P) else np.full(len(self.N[n]), np.inf)
+
+
+def _split_at(seg, N, O, W, bands):
+    """Cut a segment where its distance to plane p (normals ``N`` (P, 3),
+    offsets ``O`` (P,)) crosses m ``W[p]``, 1 <= m <= ``bands``; E is shared
+    in proportion to length."""
+    a, b = np.array(seg.start, dtype=float), np.array(seg.end, dtype=float)
+    if not len(N) or np.allclose(a, b):
+        return [seg]
+    fa, fb = N @ a - O, N @ b - O
+    cuts = []
+    for p in range(len(N)):
+        if abs(fb[p] - fa[p]) < 1e-12:
+            continue
+        lo, hi = sorted((fa[p], fb[p]))
+        for m in range(max(1, int(np.floor(lo / W[p])) + 1), min(bands, int(np.ceil(hi / W[p])) - 1) + 1):
+            t = (m * W[p] - fa[p]) / (fb[p] - fa[p])
+            if 1e-9 < t < 1 - 1e-9:
+                cuts.append(t)
+    return cut_segment(seg, cuts)
+
+
+def _chunks(seams, read, n_layers, bands):
+    """{(arm, layer): [(pieces, closest distance to each plane (P,), level)]}:
+    the arm's extrusions on the layer cut into pieces and grouped by band
+    (width zone / ``bands``) of distance to each useful plane, all pieces
+    beyond the zone in one band; ``level``: the nearest band to a seam."""
+    chunks = {}
+    for n in seams.names:
+        useful = seams.useful[n]
+        W = np.where(useful, seams.Z[n] / bands, np.inf)
+        for layer in range(n_layers):
+            segs = [s for s in read[n][1].get(layer, []) if s.extrude and s.start != s.end]
+            pieces = [p for s in segs for p in _split_at(s, seams.N[n], seams.O[n], W, bands)]
+            groups = {}
+            if pieces:
+                mid = np.array([np.add(p.start, p.end) / 2.0 for p in pieces])
+                keys = np.minimum(np.floor(seams.dist(n, mid) / np.maximum(W, 1e-9)), bands).astype(int)
+                keys[:, ~useful] = 0
+                for p, key in zip(pieces, map(tuple, keys)):
+                    groups.setdefault(key, []).append(p)
+            out = []
+            for key in sorted(groups):
+                ps = groups[key]
+                pts = np.array([p.start for p in ps] + [p.end for p in ps], dtype=float)
+                dmin = seams.dist(n, pts).min(axis=0) if len(seams.N[n]) else np.zeros(0)
+                level = min([k for k, u in zip(key, useful) if u] or [bands])
+                out.append((ps, dmin, level))
+            chunks[n, layer] = out
+    return chunks
+
+
+def _barriers(acts, nbrs, arm_of):
+    """Before each step an arm waits for what every adjacent arm completed
+    by the time the step starts in the schedule (``Act.waits``); each step
+    waited for reports its end to the first arm that waits for it
+    (``Act.report``)."""
+    ends = {n: [act.C for act in acts[n]] for n in acts}
+    for n in acts:
+        last = {b: -1 for b in nbrs[n]}
+        for act in acts[n]:
+            for b in nbrs[n]:
+                m = bisect.bisect_right(ends[b], act.S) - 1
+                if m > last[b]:
+                    act.waits[b] = m
+                    last[b] = m
+                    if not acts[b][m].report:
+                        acts[b][m].report = arm_of[n].id
+
+
+def _steps(acts, names, park, n_layers):
+    """An arm's scheduled acts as steps: the layer changes up to the act's
+    layer (a park: to the last), its waits (in the cell's order), the chunk
+    printed or the park position, its report; the mark is the act's index."""
+    steps, marked = [], -1
+    for i, act in enumerate(acts):
+        upto = act.layer if act.kind == "chunk" else (n_layers - 1 if act.kind == "park" else -1)
+        st = Step(waits=[Wait(b, m) for b, m in sorted(act.waits.items(), key=lambda kv: names.index(kv[0]))])
+        while marked < upto:
+            marked += 1
+            st.layers.append(act.segs[-1].end[2] if marked == act.layer and act.segs else 0.0)
+        if act.kind == "chunk":
+            st.travel, st.pieces = act.segs[0].start, act.segs
+        else:
+            st.park = park
+        if act.report:
+            st.report, st.mark = act.report, i
+        steps.append(st)
+    return steps
