@@ -120,12 +120,13 @@ def _design(f, L, corners):
     return np.stack([f, np.ones_like(f), 0.5 * corners * np.sqrt(L)], axis=1)
 
 
-def line_durations(text, arm, cell, path="<program>", sample_moves=SAMPLE_MOVES, planner=None):
+def line_durations(text, arm, cell, path="<program>", sample_moves=SAMPLE_MOVES, planner=None, events=None):
     """Per-line durations of ``arm`` executing program ``text`` alone (step 1
     of the module docstring).  An unreachable move in the sample sets
-    ``error`` (the durations are then those of the model)."""
+    ``error`` (the durations are then those of the model).  ``events``: the
+    text's G-code events, if the caller has parsed it already."""
     from ambots.motion import Directive, MotionPlanner, Moves, Pause, read_program
-    items, n_lines, layer_of_line = read_program(text, path)
+    items, n_lines, layer_of_line = read_program(text, path, events=events)
     d = np.zeros(n_lines + 1)
     directives = {it.line: it.message for it in items if isinstance(it, Directive)}
     runs = [i for i, it in enumerate(items) if isinstance(it, Moves)]
@@ -317,12 +318,16 @@ def makespan(times, arms, start_first=None):
     return out
 
 
-def estimate_programs(programs, cell, sample_moves=SAMPLE_MOVES):
+def estimate_programs(programs, cell, sample_moves=SAMPLE_MOVES, events=None):
     """Makespan of coordinated programs ({name: ArmProgram}, see
     :mod:`ambots.coordinate`), timed by the one timing law: :func:`makespan`
     of each program's :func:`line_durations`.  Adds ``errors`` {name: text}
-    for programs with a move out of reach in the sample."""
-    times = {n: line_durations(p.text, p.arm, cell, n + ".gcode", sample_moves) for n, p in programs.items()}
+    for programs with a move out of reach in the sample.  ``events``: {name:
+    the program's G-code events} when the caller has parsed them already
+    (:meth:`ambots.coordinate.ArmProgram.parse`)."""
+    events = events or {}
+    times = {n: line_durations(p.text, p.arm, cell, n + ".gcode", sample_moves, events=events.get(n))
+             for n, p in programs.items()}
     out = makespan(times, [p.arm for p in programs.values()],
                    {n: p.start_first for n, p in programs.items()})
     out["errors"] = {n: t.error for n, t in times.items() if t.error}

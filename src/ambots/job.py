@@ -14,7 +14,7 @@ from ambots.units import m_to_mm
 
 #: the model of the menu's "start demo" and of ``make demo`` (package-relative): a
 #: 240 x 40 x 10 mm block, long enough across the seam for two facing arms to
-#: print at the same time (they must stay ~90 mm apart, see coordinate.py)
+#: print at the same time (they must stay ~90 mm apart, see ambots.coordinate)
 DEMO_MODEL = "config/models/demo_block.stl"
 
 __all__ = ["DEMO_MODEL", "Job", "Candidate", "prepare_model", "split", "slice_parts", "coordinate", "run_job",
@@ -32,6 +32,8 @@ class Candidate:
     makespan_s: float = None
     note: str = None
     programs: dict = field(default=None, repr=False)   #: {arm name: ArmProgram}, when built
+    #: {arm name: :func:`ambots.gcode.summarize` of its program}, from the parse that timed them
+    figures: dict = field(default=None, repr=False)
 
     def as_dict(self):
         return {"arms": list(self.arms), "how": self.how,
@@ -83,7 +85,10 @@ class Job:
 
     def summary(self):
         """Per-arm figures of the programs (``python -m ambots info`` keys)."""
-        from ambots.gcode import parse_gcode_text, summarize
+        from ambots.gcode import summarize
+        chosen = self.chosen
+        # the programs' figures from the one parse that timed them (parsed here if not timed)
+        figures = (chosen.figures if chosen is not None and chosen.programs is self.programs else None) or {}
         out = {"model": self.model_path, "cell": self.cell.name, "mode": self.mode, "slicer": self.slicer,
                "model_volume_mm3": float(self.mesh.volume) if self.mesh is not None else None,
                "one_arm_estimate_s": self.one_arm_estimate_s, "plan": self.plan_summary(), "arms": {}}
@@ -91,7 +96,7 @@ class Job:
             name = part.arm.name
             if name not in self.programs:
                 continue
-            s = summarize(parse_gcode_text(self.programs[name].text, name + ".gcode"))
+            s = figures.get(name) or summarize(self.programs[name].parse())
             out["arms"][name] = {
                 "id": part.arm.id, "part_volume_mm3": part.volume, "layers": s["layers"],
                 "moves": s["moves"], "extrude_path_mm": s["extrude_path_mm"],
@@ -167,7 +172,9 @@ def slice_parts(parts, slicer="builtin", settings=None):
 
 def coordinate(sliced, parts, cell, mode="concurrent", idle=(), **kw):
     """Step 4: per-arm programs with A-series coordination (``idle``: the
-    cell's arms without work, parked first by a one-arm job)."""
+    cell's arms without work, parked first by a one-arm job).  ``sliced``:
+    {arm name: G-code text, or that text read once
+    (:func:`ambots.coordinate.read_sliced`)}."""
     from ambots.coordinate import build_programs
     parts = [p for p in parts if p.arm.name in sliced]
     return build_programs(sliced, parts, cell, mode=mode, idle=idle, **kw)
@@ -179,29 +186,43 @@ TIE_SHARE = 0.03
 
 
 def _timed(programs, cell):
-    """Makespan of programs by the one timing law (s), or None and why not."""
+    """Makespan of programs by the one timing law (s), or None and why not,
+    and the programs' figures ({arm name: :func:`ambots.gcode.summarize`},
+    None if not parsed): each program is parsed once, for both."""
     from ambots.estimate import estimate_programs
     from ambots.errors import AmbotsError
+    from ambots.gcode import summarize
     try:
-        est = estimate_programs(programs, cell)
+        events = {n: p.parse() for n, p in programs.items()}
+        est = estimate_programs(programs, cell, events=events)
     except AmbotsError as exc:
-        return None, str(exc)
+        return None, str(exc), None
+    figures = {n: summarize(ev) for n, ev in events.items()}
     if est["errors"]:
-        return None, "; ".join(est["errors"].values())
-    return est["makespan_s"], None
+        return None, "; ".join(est["errors"].values()), figures
+    return est["makespan_s"], None, figures
 
 
-def _alone(mesh, cell, arm, text, idle, settings):
-    """The whole model by ``arm`` alone: (parts, sliced, programs, Candidate)."""
+def _plan(parts, sliced, programs, arms, how, cell):
+    """A plan's (parts, sliced, programs, Candidate), timed."""
+    t, why, figures = _timed(programs, cell)
+    return parts, sliced, programs, Candidate(arms, how, t, why, programs, figures)
+
+
+def _alone(mesh, cell, arm, text, idle, settings, read):
+    """The whole model by ``arm`` alone: (parts, sliced, programs, Candidate).
+    ``read``: {} shared by the arms, where the model's G-code ``text`` is
+    kept once read (:func:`ambots.coordinate.read_sliced`, on first use)."""
+    from ambots.coordinate import read_sliced
     from ambots.errors import AmbotsError
     try:
         parts = split(mesh, cell, [arm], settings=settings)
     except AmbotsError as exc:
         return None, None, None, Candidate([arm.name], "alone", None, str(exc))
-    sliced = {arm.name: text}
-    programs = coordinate(sliced, parts, cell, "concurrent", idle=idle)
-    t, why = _timed(programs, cell)
-    return parts, sliced, programs, Candidate([arm.name], "alone", t, why, programs)
+    if "gcode" not in read:
+        read["gcode"] = read_sliced(text, "%s.gcode" % arm.name)
+    programs = coordinate({arm.name: read["gcode"]}, parts, cell, "concurrent", idle=idle)
+    return _plan(parts, {arm.name: text}, programs, [arm.name], "alone", cell)
 
 
 def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", seam="straight",
@@ -225,19 +246,18 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
         parts = split(job.mesh, cell, arms, seam, settings)
         sliced = slice_parts(parts, slicer, settings)
         programs = coordinate(sliced, parts, cell, mode, idle=idle)
-        t, why = _timed(programs, cell)
-        plans.append((parts, sliced, programs, Candidate([a.name for a in arms], mode, t, why, programs)))
+        plans.append(_plan(parts, sliced, programs, [a.name for a in arms], mode, cell))
     if len(arms) == 1:                   # one arm: its plan (an arm that cannot reach the model is an error)
         parts = split(job.mesh, cell, arms, seam, settings)
         sliced = slice_parts(parts, slicer, settings)
         programs = coordinate(sliced, parts, cell, mode, idle=idle)
-        t, why = _timed(programs, cell)
-        plans.append((parts, sliced, programs, Candidate([arms[0].name], "alone", t, why, programs)))
-    elif choose:                         # each arm alone, on the same G-code of the whole model
+        plans.append(_plan(parts, sliced, programs, [arms[0].name], "alone", cell))
+    elif choose:                         # each arm alone, on the same G-code of the whole model (read once)
         from ambots.slicer import slice_mesh
-        text = slice_mesh(job.mesh, settings, backend=slicer)
+        text, read = slice_mesh(job.mesh, settings, backend=slicer), {}
         for arm in arms:
-            plans.append(_alone(job.mesh, cell, arm, text, [a for a in cell.arms if a.name != arm.name], settings))
+            plans.append(_alone(job.mesh, cell, arm, text, [a for a in cell.arms if a.name != arm.name], settings,
+                                read))
     best = _best([p[3] for p in plans]) if choose else 0
     if best is None:                     # nothing could be timed: the arms asked for, as before
         best = 0

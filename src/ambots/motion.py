@@ -84,7 +84,7 @@ class Pause:
     seconds: float
 
 
-def read_program(text, path="<chunk>", max_run=400):
+def read_program(text, path="<chunk>", max_run=400, events=None):
     """Program text -> (items, n_lines, layer_of_line).
 
     ``items`` in line order; moves are split at every directive, dwell and
@@ -93,7 +93,9 @@ def read_program(text, path="<chunk>", max_run=400):
     before it moves).
     ``layer_of_line`` (n_lines + 1,) gives the layer of each line (index 0
     unused).  Malformed G-code or directives raise
-    :class:`~ambots.errors.GCodeError` naming ``path`` and the line."""
+    :class:`~ambots.errors.GCodeError` naming ``path`` and the line.
+    ``events``: the text's G-code events when the caller has parsed it
+    already (:meth:`ambots.coordinate.ArmProgram.parse`), else it is parsed here."""
     lines = text.split("\n")
     if len(lines) > 1 and lines[-1] == "":
         lines.pop()                # a final line break ends the last line, it starts none
@@ -119,7 +121,7 @@ def read_program(text, path="<chunk>", max_run=400):
             mi += 1
 
     last_line, last_layer = 0, 0
-    for ev in parse_gcode_text(text, path):
+    for ev in parse_gcode_text(text, path) if events is None else events:
         kind = type(ev)
         if kind is Segment or kind is Dwell:
             directives_before(ev.line)

@@ -61,6 +61,28 @@ def test_one_arm_alone_prints_everything(tmp_path, cube_stl, cell):
     assert not any(l.startswith(";@A9") for l in job.programs["ur10"].lines)
 
 
+def test_a_job_parses_each_g_code_once(tmp_path, cube_stl, cell, monkeypatch):
+    """The planner's three plans (both arms; each arm alone on the same
+    G-code of the whole model): every sliced G-code and every program is
+    parsed once, for the coordination, the estimate and job.json alike."""
+    import ambots.gcode
+    parsed = []
+    real = ambots.gcode.iter_gcode
+
+    def counting(lines, *args, **kw):
+        lines = list(lines)
+        parsed.append("\n".join(lines))
+        return real(lines, *args, **kw)
+
+    monkeypatch.setattr(ambots.gcode, "iter_gcode", counting)
+    job = run_job(cube_stl, cell)
+    write_job(job, str(tmp_path))
+    assert len(job.candidates) == 3 and all(c.programs for c in job.candidates)
+    programs = [p.text.rstrip("\n") for c in job.candidates for p in c.programs.values()]
+    assert len(programs) == 4 and all(text in parsed for text in programs)
+    assert len(parsed) == len(set(parsed)) == 4 + 3          # the programs, the pair's parts, the whole model
+
+
 def test_a_model_larger_than_the_bed_is_refused_saying_by_how_much(tmp_path, cell):
     big = tmp_path / "big.stl"
     trimesh.creation.box([350, 100, 10]).export(str(big))

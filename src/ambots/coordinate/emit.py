@@ -37,6 +37,12 @@ class ArmProgram:
     def text(self):
         return "\n".join(self.lines) + "\n"
 
+    def parse(self):
+        """The program's G-code events (a list, :func:`ambots.gcode.parse_gcode_text`
+        of :attr:`text` as ``<arm>.gcode``): parse it once and pass the list on
+        (:func:`ambots.estimate.estimate_programs`, :func:`ambots.gcode.summarize`)."""
+        from ambots.gcode import parse_gcode_text
+        return list(parse_gcode_text(self.text, "%s.gcode" % self.arm.name))
 
 
 class _Writer:
