@@ -27,7 +27,7 @@ import numpy as np
 
 from ambots.errors import KinematicsError, UnreachableError
 
-__all__ = ["Segment", "Chain", "chain_from_urdf", "kdl_chain", "ArmKinematics", "DOWN"]
+__all__ = ["Segment", "Chain", "chain_from_urdf", "kdl_chain", "ArmKinematics", "DOWN", "shared_arm_kinematics"]
 
 #: nozzle pointing straight down in a base frame whose z axis is up
 DOWN = np.array([0.0, 0.0, -1.0])
@@ -607,3 +607,32 @@ class ArmKinematics:
             first_bad = int(np.argmin(ok)) if not ok.all() else last + 1
             ok[first_bad:] = False
         return Q, ok
+
+
+_SHARED = {}
+
+
+def shared_arm_kinematics(arm):
+    """:func:`ambots.model.arm_kinematics` of ``arm`` (an ArmInstance or an
+    ArmProfile), built once per arm model and shared (a build runs xacro,
+    0.1-0.2 s; a job's planners and reach checks ask for it a dozen times).
+    The URDF comes from the profile's files (``model`` and ``path``), so the
+    key is those files as they are now (their modification times) and the
+    chain's ends.  Callers must not modify the object."""
+    import os
+
+    from ambots.model import arm_kinematics
+    profile = getattr(arm, "profile", arm)
+
+    def mtime(path):
+        try:
+            return os.stat(path).st_mtime_ns
+        except (OSError, TypeError, ValueError):
+            return None
+
+    key = (profile.model, profile.path, mtime(profile.model), mtime(profile.path), profile.base_link,
+           profile.tool_link)
+    kin = _SHARED.get(key)
+    if kin is None:
+        kin = _SHARED[key] = arm_kinematics(arm)
+    return kin

@@ -244,9 +244,9 @@ class MotionPlanner:
 
     def __init__(self, arm, cell, kin=None, tolerance_mm=DEFAULT_TOLERANCE_MM, sample_mm=10.0,
                  is_valid=None, plan_timeout=2.0, timing=None):
-        from ambots.model import arm_kinematics
+        from ambots.kinematics import shared_arm_kinematics
         self.arm, self.cell = arm, cell
-        self.kin = kin or arm_kinematics(arm)
+        self.kin = kin or shared_arm_kinematics(arm)
         self.tolerance = tolerance_mm * MM
         self.sample = sample_mm * MM
         self.is_valid = is_valid

@@ -187,7 +187,7 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
 
 
 def _check_reach(cell, part):
-    from ambots.model import arm_kinematics
+    from ambots.kinematics import shared_arm_kinematics
     from ambots.workspace import down_in_base, world_to_base
     if part.empty:
         return
@@ -195,7 +195,7 @@ def _check_reach(cell, part):
     v = np.asarray(mesh.vert_properties)[:, :3] * MM                 # bed frame, m
     world = v @ cell.bed.pose[:3, :3].T + cell.bed.pose[:3, 3]
     arm = part.arm
-    kin = arm_kinematics(arm)
+    kin = shared_arm_kinematics(arm)
     _, ok, err = kin.ik_batch(world_to_base(arm, world), np.asarray(arm.profile.home), down_in_base(arm))
     if not ok.all():
         worst = int(np.argmax(np.where(ok, -1.0, err)))
