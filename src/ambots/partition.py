@@ -161,11 +161,11 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
         step = 0.5
         prev_sign = None
         for _ in range(max_iter):
-            times = np.array([estimate_print_time(_cut(model, _planes(sites, w, i)), est)
-                              for i in range(len(arms))])
+            pieces = [_cut(model, _planes(sites, w, i)) for i in range(len(arms))]
+            times = np.array([estimate_print_time(piece, est) for piece in pieces])
             ratio = times.max() / max(times.min(), 1e-9)
             if best is None or ratio < best[0]:
-                best = (ratio, w.copy())
+                best = (ratio, w.copy(), pieces, times)
             if ratio <= tolerance:
                 break
             rel = (times - times.mean()) / times.mean()
@@ -179,8 +179,9 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
         parts = []
         for i, arm in enumerate(arms):
             planes = _planes(sites, w, i, shift)
-            piece = _cut(model, planes)
-            parts.append(Part(arm, piece, planes, estimate_print_time(_cut(model, _planes(sites, w, i)), est),
+            # the best round's pieces are these parts (a straight seam) and their times
+            piece = best[2][i] if shift == 0.0 else _cut(model, planes)
+            parts.append(Part(arm, piece, planes, float(best[3][i]),
                               [a.name for j, a in enumerate(arms) if j != i]))
     if check_reach:
         for part in parts:
