@@ -74,11 +74,13 @@ class ProgramTimes:
 CORNER_DEG = 20.0
 
 
-def _features(segments):
+def _features(segments, first=None):
     """(kind index, feed time s, length mm, corners (0, 1 or 2: ends of the
     move at a corner or at rest)) per segment, vectorised; the feed time is
     :func:`ambots.gcode.summarize`'s (length / feedrate, a filament-only
-    move at its E speed) per segment."""
+    move at its E speed) per segment.  ``segments``: one run of moves, or
+    several one after the other with ``first`` (bool per segment) marking
+    where each run starts (a run starts and ends at rest)."""
     S = np.array([s.start for s in segments], float)
     E = np.array([s.end for s in segments], float)
     L = np.linalg.norm(E - S, axis=1)
@@ -94,6 +96,8 @@ def _features(segments):
     if len(L) > 1:
         smooth[1:-1] = ((np.einsum("ij,ij->i", u[:-1], u[1:]) > np.cos(np.radians(CORNER_DEG)))
                         & (L[:-1] > 0) & (L[1:] > 0) & (kind[:-1] == kind[1:]))
+    if first is not None:
+        smooth[:-1] &= ~first
     corners = (~smooth[:-1]).astype(float) + (~smooth[1:]).astype(float)
     return kind, f, L, corners
 
@@ -174,11 +178,12 @@ def line_durations(text, arm, cell, path="<program>", sample_moves=SAMPLE_MOVES,
         else:                            # too few to fit: the sample's overall ratio to the feed time
             out.model[name] = (ratio, 0.0, 0.0)
     coef = np.array([out.model[name] for name in MOVE_KINDS])
-    for i in runs:
-        if i in planned:
-            continue
-        segs = items[i].segments
-        kind, f, L, cor = _features(segs)
+    rest = [items[i].segments for i in runs if i not in planned]
+    if rest:                             # the other runs, all at once
+        segs = [s for run in rest for s in run]
+        first = np.zeros(len(segs), bool)
+        first[np.cumsum([0] + [len(run) for run in rest[:-1]])] = True
+        kind, f, L, cor = _features(segs, first)
         t = np.einsum("ij,ij->i", _design(f, L, cor), coef[kind])
         np.add.at(d, [s.line for s in segs], t)
     last_end = None                      # where the program's moves were before each item (bed mm)

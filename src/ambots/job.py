@@ -153,15 +153,17 @@ def prepare_model(path, cell, scale=1.0):
     return mesh
 
 
-def split(mesh, cell, arms, seam="straight", settings=None):
-    """Step 2: one part per arm, balanced, each inside its arm's reach."""
+def split(mesh, cell, arms, seam="straight", settings=None, reach=None):
+    """Step 2: one part per arm, balanced, each inside its arm's reach
+    (``reach``: a dict shared by the splits of one mesh, see
+    :func:`ambots.partition.partition`'s ``reach_cache``)."""
     from ambots.mesh import to_manifold
     from ambots.partition import PrintEstimate, partition
     est = PrintEstimate()
     if settings is not None:
         est = PrintEstimate(settings.bead_width_mm, settings.layer_height_mm, settings.perimeters,
                             settings.infill_density)
-    return partition(to_manifold(mesh), cell, arms, seam=seam, est=est)
+    return partition(to_manifold(mesh), cell, arms, seam=seam, est=est, reach_cache=reach)
 
 
 def slice_parts(parts, slicer="builtin", settings=None):
@@ -209,14 +211,15 @@ def _plan(parts, sliced, programs, arms, how, cell):
     return parts, sliced, programs, Candidate(arms, how, t, why, programs, figures)
 
 
-def _alone(mesh, cell, arm, text, idle, settings, read):
+def _alone(mesh, cell, arm, text, idle, settings, read, reach=None):
     """The whole model by ``arm`` alone: (parts, sliced, programs, Candidate).
     ``read``: {} shared by the arms, where the model's G-code ``text`` is
-    kept once read (:func:`ambots.coordinate.read_sliced`, on first use)."""
+    kept once read (:func:`ambots.coordinate.read_sliced`, on first use);
+    ``reach``: the job's reach checks, shared by its plans."""
     from ambots.coordinate import read_sliced
     from ambots.errors import AmbotsError
     try:
-        parts = split(mesh, cell, [arm], settings=settings)
+        parts = split(mesh, cell, [arm], settings=settings, reach=reach)
     except AmbotsError as exc:
         return None, None, None, Candidate([arm.name], "alone", None, str(exc))
     if "gcode" not in read:
@@ -242,8 +245,9 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
     job.mesh = prepare_model(model_path, cell, scale)
     idle = [a for a in cell.arms if a.name not in {b.name for b in arms}]
     plans = []
+    reach = {}                           # the reach checks of this mesh, shared by the plans
     if len(arms) > 1:
-        parts = split(job.mesh, cell, arms, seam, settings)
+        parts = split(job.mesh, cell, arms, seam, settings, reach)
         sliced = slice_parts(parts, slicer, settings)
         programs = coordinate(sliced, parts, cell, mode, idle=idle)
         plans.append(_plan(parts, sliced, programs, [a.name for a in arms], mode, cell))
@@ -257,7 +261,7 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
         text, read = slice_mesh(job.mesh, settings, backend=slicer), {}
         for arm in arms:
             plans.append(_alone(job.mesh, cell, arm, text, [a for a in cell.arms if a.name != arm.name], settings,
-                                read))
+                                read, reach))
     best = _best([p[3] for p in plans]) if choose else 0
     if best is None:                     # nothing could be timed: the arms asked for, as before
         best = 0

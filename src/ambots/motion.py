@@ -30,6 +30,7 @@ of time-stamped joint waypoints, steps a real controller could follow:
 Units: metres, radians and seconds inside; mm only where G-code is read
 (:mod:`ambots.units`).  World frame = the cell's; bed frame = G-code frame.
 """
+import re
 from dataclasses import dataclass
 from typing import List, Optional
 
@@ -37,7 +38,7 @@ import numpy as np
 
 from ambots.errors import AmbotsError, UnreachableError
 from ambots.gcode import Dwell, Segment, parse_gcode_text
-from ambots.program import is_directive, parse_directive
+from ambots.program import DIRECTIVE, parse_directive
 from ambots.trajectory import SplineTiming, joint_limits
 from ambots.units import MM
 from ambots.workspace import down_in_base
@@ -96,49 +97,65 @@ def read_program(text, path="<chunk>", max_run=400, events=None):
     :class:`~ambots.errors.GCodeError` naming ``path`` and the line.
     ``events``: the text's G-code events when the caller has parsed it
     already (:meth:`ambots.coordinate.ArmProgram.parse`), else it is parsed here."""
-    lines = text.split("\n")
-    if len(lines) > 1 and lines[-1] == "":
-        lines.pop()                # a final line break ends the last line, it starts none
+    n_lines = text.count("\n")
+    if not text.endswith("\n"):
+        n_lines += 1               # a final line break ends the last line, it starts none
+    # directive lines: found in the text (a few hundred among 100,000s of lines)
     directives = {}
-    for number, raw in enumerate(lines, 1):
-        if is_directive(raw):
-            directives[number] = parse_directive(raw, path, number)
-    items, run = [], []
+    number, at = 1, 0
+    for m in _DIRECTIVE_LINE.finditer(text):
+        number += text.count("\n", at, m.start())
+        at = m.start()
+        end = text.find("\n", at)
+        directives[number] = parse_directive(text[at:] if end < 0 else text[at:end], path, number)
+    items = []
+    append = items.append
     marks = sorted(directives)
-    layer_of_line = np.zeros(len(lines) + 1, dtype=int)
+    n_marks = len(marks)
     mi = 0
-
-    def flush():
-        if run:
-            items.append(Moves(list(run)))
-            run.clear()
-
-    def directives_before(line):
-        nonlocal mi
-        while mi < len(marks) and marks[mi] < line:
-            flush()
-            items.append(Directive(marks[mi], directives[marks[mi]]))
-            mi += 1
-
-    last_line, last_layer = 0, 0
+    next_mark = marks[0] if marks else n_lines + 2
+    ev_lines, ev_layers = [], []
+    run, run_layer = [], None
     for ev in parse_gcode_text(text, path) if events is None else events:
         kind = type(ev)
-        if kind is Segment or kind is Dwell:
-            directives_before(ev.line)
-            layer_of_line[last_line + 1:ev.line] = last_layer
-            last_line, last_layer = ev.line, max(ev.layer, 0)
-            layer_of_line[ev.line] = last_layer         # the event's own line: its own layer
-            if kind is Segment:
-                if run and (ev.layer != run[-1].layer or len(run) >= max_run):
-                    flush()
-                run.append(ev)
-            else:
-                flush()
-                items.append(Pause(ev.line, ev.seconds))
-    directives_before(len(lines) + 1)
-    flush()
-    layer_of_line[last_line + 1:] = last_layer
-    return items, len(lines), layer_of_line
+        if kind is not Segment and kind is not Dwell:
+            continue
+        line = ev.line
+        while next_mark < line:        # the directives before this line, in order
+            if run:
+                append(Moves(run))
+                run = []
+            append(Directive(next_mark, directives[next_mark]))
+            mi += 1
+            next_mark = marks[mi] if mi < n_marks else n_lines + 2
+        ev_lines.append(line)
+        ev_layers.append(ev.layer)
+        if kind is Segment:
+            if run and (ev.layer != run_layer or len(run) >= max_run):
+                append(Moves(run))
+                run = []
+            run.append(ev)
+            run_layer = ev.layer
+        else:
+            if run:
+                append(Moves(run))
+                run = []
+            append(Pause(line, ev.seconds))
+    if run:
+        append(Moves(run))
+    for m in marks[mi:]:
+        append(Directive(m, directives[m]))
+    # each line's layer: that of the last event on or before it (0 before the first)
+    layer_of_line = np.zeros(n_lines + 1, dtype=int)
+    if ev_lines:
+        at_line = np.asarray(ev_lines)
+        which = np.searchsorted(at_line, np.arange(n_lines + 1), side="right") - 1
+        layer_of_line = np.where(which >= 0, np.maximum(np.asarray(ev_layers), 0)[np.maximum(which, 0)], 0)
+    return items, n_lines, layer_of_line
+
+
+#: the start of a directive line (:func:`ambots.program.is_directive`)
+_DIRECTIVE_LINE = re.compile(r"^[ \t]*" + re.escape(DIRECTIVE), re.M)
 
 
 # ------------------------------------------------------------- the motion
@@ -246,9 +263,9 @@ class MotionPlanner:
 
     def __init__(self, arm, cell, kin=None, tolerance_mm=DEFAULT_TOLERANCE_MM, sample_mm=10.0,
                  is_valid=None, plan_timeout=2.0, timing=None):
-        from ambots.model import arm_kinematics
+        from ambots.kinematics import shared_arm_kinematics
         self.arm, self.cell = arm, cell
-        self.kin = kin or arm_kinematics(arm)
+        self.kin = kin or shared_arm_kinematics(arm)
         self.tolerance = tolerance_mm * MM
         self.sample = sample_mm * MM
         self.is_valid = is_valid

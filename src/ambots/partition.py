@@ -131,7 +131,7 @@ def _cut(model, planes):
 
 
 def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tolerance=1.02,
-              max_iter=80, check_reach=True):
+              max_iter=80, check_reach=True, reach_cache=None):
     """Split ``model`` (manifold3d.Manifold, mm, bed frame) among ``arms`` (default:
     every arm of ``cell``) and return one :class:`Part` per arm, in order.
 
@@ -139,7 +139,9 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
     ``tolerance`` of the shortest (or ``max_iter`` rounds).  With
     ``check_reach``, every vertex of every part must be reachable by its arm
     with the nozzle down; otherwise :class:`MeshError` says which arm misses
-    by how much.
+    by how much.  ``reach_cache``: a dict kept by the caller across calls on
+    the same model (a job's plans): a corner already checked for an arm is
+    not solved again.
     """
     arms = list(cell.arms if arms is None else arms)
     if seam not in ("straight", "overlap"):
@@ -159,11 +161,11 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
         step = 0.5
         prev_sign = None
         for _ in range(max_iter):
-            times = np.array([estimate_print_time(_cut(model, _planes(sites, w, i)), est)
-                              for i in range(len(arms))])
+            pieces = [_cut(model, _planes(sites, w, i)) for i in range(len(arms))]
+            times = np.array([estimate_print_time(piece, est) for piece in pieces])
             ratio = times.max() / max(times.min(), 1e-9)
             if best is None or ratio < best[0]:
-                best = (ratio, w.copy())
+                best = (ratio, w.copy(), pieces, times)
             if ratio <= tolerance:
                 break
             rel = (times - times.mean()) / times.mean()
@@ -177,17 +179,18 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
         parts = []
         for i, arm in enumerate(arms):
             planes = _planes(sites, w, i, shift)
-            piece = _cut(model, planes)
-            parts.append(Part(arm, piece, planes, estimate_print_time(_cut(model, _planes(sites, w, i)), est),
+            # the best round's pieces are these parts (a straight seam) and their times
+            piece = best[2][i] if shift == 0.0 else _cut(model, planes)
+            parts.append(Part(arm, piece, planes, float(best[3][i]),
                               [a.name for j, a in enumerate(arms) if j != i]))
     if check_reach:
         for part in parts:
-            _check_reach(cell, part)
+            _check_reach(cell, part, reach_cache)
     return parts
 
 
-def _check_reach(cell, part):
-    from ambots.model import arm_kinematics
+def _check_reach(cell, part, cache=None):
+    from ambots.kinematics import shared_arm_kinematics
     from ambots.workspace import down_in_base, world_to_base
     if part.empty:
         return
@@ -195,10 +198,33 @@ def _check_reach(cell, part):
     v = np.asarray(mesh.vert_properties)[:, :3] * MM                 # bed frame, m
     world = v @ cell.bed.pose[:3, :3].T + cell.bed.pose[:3, 3]
     arm = part.arm
-    kin = arm_kinematics(arm)
-    _, ok, err = kin.ik_batch(world_to_base(arm, world), np.asarray(arm.profile.home), down_in_base(arm))
+    kin = shared_arm_kinematics(arm)
+    solve = lambda W: kin.ik_batch(world_to_base(arm, W), np.asarray(arm.profile.home), down_in_base(arm))[1:]
+    if cache is None:
+        ok, err = solve(world)
+    else:
+        ok, err = _cached_reach(cache.setdefault((arm.name, id(kin), id(cell)), {}), world, solve)
     if not ok.all():
         worst = int(np.argmax(np.where(ok, -1.0, err)))
         raise MeshError("the part for arm %r has %d of %d corners out of its reach; worst at "
                         "(%.1f, %.1f, %.1f) mm on the bed, missed by %.1f mm"
                         % (arm.name, (~ok).sum(), len(ok), *m_to_mm(v[worst]), m_to_mm(err[worst])))
+
+
+def _cached_reach(known, world, solve):
+    """(ok, err) of the points ``world`` (N, 3), solving only those not in
+    ``known`` ({point's bytes: (ok, err)}, updated).  Each point's IK is
+    solved on its own (same seed, same target), so a stored answer is the
+    one solving it again would give."""
+    keys = np.ascontiguousarray(world).view(np.dtype((np.void, world.dtype.itemsize * 3))).ravel().tolist()
+    hit = [known.get(k) for k in keys]
+    todo = np.array([h is None for h in hit], dtype=bool)
+    ok, err = np.zeros(len(keys), dtype=bool), np.zeros(len(keys))
+    if (~todo).any():
+        old = np.array([h for h in hit if h is not None], dtype=float).reshape(-1, 2)
+        ok[~todo], err[~todo] = old[:, 0] > 0, old[:, 1]
+    if todo.any():
+        ok_new, err_new = solve(world[todo])
+        ok[todo], err[todo] = ok_new, err_new
+        known.update(zip([k for k, t in zip(keys, todo) if t], zip(ok_new.tolist(), err_new.tolist())))
+    return ok, err

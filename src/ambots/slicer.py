@@ -213,9 +213,9 @@ class BuiltinSlicer:
             islands = [plan_island(island, interior, h, angle, s)  # 3.-4. perimeters, infill
                        for island in outline.decompose()]
             writer.layer_change(z, h, first=(i == 0))
-            for paths in order_islands(islands, writer.xy):  # 5. ordering
-                for path in paths:
-                    writer.extrude(path, h)  # 6. G-code, with travel and retraction
+            # 5. ordering (from where the nozzle is at the layer change), then
+            # 6. G-code, with travel and retraction
+            writer.extrude_paths([path for paths in order_islands(islands, writer.xy) for path in paths], h)
         return writer.finish()
 
 
@@ -554,6 +554,43 @@ class GcodeWriter:
         self.chunks.append("G1 F%d\n" % feed)
         self.chunks.append(("G1 X%.3f Y%.3f E%.5f\n" * len(e)) % tuple(rows))
         self.xy = pts[-1]
+
+    def extrude_paths(self, paths, height):
+        """:meth:`extrude` of each of ``paths`` in turn (the same text), the
+        lengths, E and numbers to print of all of them computed at once (a
+        layer has tens of paths: per path, numpy's cost per call was most
+        of the writer's time)."""
+        if len(paths) < 2:
+            for path in paths:
+                self.extrude(path, height)
+            return
+        pts = [np.concatenate([p.points, p.points[:1]]) if p.closed else p.points for p in paths]
+        sizes = np.array([len(q) for q in pts])
+        ends = np.cumsum(sizes) - 1          # path k's moves are rows starts[k] .. ends[k] - 1 of P[1:] - P[:-1]
+        starts = ends - sizes + 1
+        P = np.concatenate(pts)
+        D = P[1:] - P[:-1]
+        lengths = np.hypot(D[:, 0], D[:, 1])
+        tiny = np.concatenate([[0], np.cumsum(lengths <= 5e-4)])
+        e_all = lengths * (self.s.bead_area_mm2(height) / self.s.filament_area_mm2)
+        rows = np.column_stack([P[1:], e_all]).ravel().tolist()
+        for path, a, b in zip(paths, starts.tolist(), ends.tolist()):
+            if b <= a:
+                continue                     # one point: nothing to print
+            if tiny[b] != tiny[a]:           # moves below the printed resolution: dropped one by one
+                self.extrude(path, height)
+                continue
+            self.travel(P[a])
+            if path.feature != self.feature:
+                self.chunks.append(";TYPE:%s\n;WIDTH:%.3f\n" % (path.feature, self.s.bead_width_mm))
+                self.feature = path.feature
+            feed = self.feeds[path.feature]
+            if self.first_layer:
+                feed = min(feed, self.s.first_layer_feedrate_mm_min)
+            self.filament_mm += float(e_all[a:b].sum())
+            self.chunks.append("G1 F%d\n" % feed)
+            self.chunks.append(("G1 X%.3f Y%.3f E%.5f\n" * (b - a)) % tuple(rows[3 * a:3 * b]))
+            self.xy = P[b]
 
     def travel(self, xy):
         """Move to ``xy`` without extruding; retract first if it is long."""

@@ -134,3 +134,71 @@ def test_bad_urdf_raises_typed_errors():
         chain_from_urdf(urdf, "base_link", "tool0")
     with pytest.raises(KinematicsError, match="does not descend"):
         chain_from_urdf(urdf, "nozzle", "base_link")
+
+
+def _odd_chain():
+    """A chain with every kind of joint the fast paths handle differently:
+    revolute about z, about a tilted axis, prismatic, and fixed links."""
+    from ambots.kinematics import Chain, Segment
+
+    from ambots.kinematics import _rodrigues
+
+    def origin(xyz, rpy=(0.0, 0.0, 0.0)):
+        T = np.eye(4)
+        T[:3, :3] = np.linalg.multi_dot([_rodrigues(np.eye(3)[k], np.array([rpy[k]]))[0] for k in (2, 1, 0)])
+        T[:3, 3] = xyz
+        return T
+
+    tilted = np.array([1.0, 2.0, 0.5]) / np.linalg.norm([1.0, 2.0, 0.5])
+    segs = [Segment("j1", "l1", "revolute", origin((0, 0, 0.2)), np.array([0.0, 0.0, 1.0])),
+            Segment("j2", "l2", "revolute", origin((0.1, 0, 0.3), (0.3, -0.2, 0.1)), tilted),
+            Segment("j3", "l3", "prismatic", origin((0, 0.05, 0.2)), np.array([0.0, 1.0, 0.0])),
+            Segment("f1", "l4", "fixed", origin((0.02, 0, 0.1), (0.0, 0.4, 0.0)), np.array([1.0, 0.0, 0.0])),
+            Segment("j4", "l5", "continuous", origin((0, 0, 0.15)), np.array([0.0, 0.0, 1.0])),
+            Segment("j5", "tool", "revolute", origin((0, 0.03, 0.1), (0.2, 0, 0)), np.array([1.0, 0.0, 0.0]))]
+    inf = np.inf
+    return Chain("base", "tool", segs, ["j1", "j2", "j3", "j4", "j5"], np.array([-3, -2, -0.1, -inf, -2.5]),
+                 np.array([3, 2, 0.3, inf, 2.5]), np.ones(5))
+
+
+@pytest.mark.parametrize("which", ARMS + ["odd"])
+def test_fast_paths_agree_with_the_matrix_products(which):
+    """Many poses (rotations as rows of vectors), one pose in plain floats
+    and IK in pieces give what the (N, 4, 4) matrix products give, to
+    rounding."""
+    kin = ArmKinematics(_odd_chain()) if which == "odd" else arm_kinematics(
+        load_arm_profile("config/arms/%s.yaml" % which))
+    rng = np.random.default_rng(7)
+    Q = sample(kin, 300, rng)
+    T_mat, _, J_mat = ArmKinematics._forward(kin, Q[:kin.ROWS_FROM - 1], jacobian=True)
+    T_rows, _, J_rows = kin._forward_rows(Q[:kin.ROWS_FROM - 1], jacobian=True)
+    np.testing.assert_allclose(T_rows, T_mat, atol=1e-13)
+    np.testing.assert_allclose(J_rows, J_mat, atol=1e-13)
+    for q, T, J in zip(Q[:20], T_mat, J_mat):
+        p, R, cols = kin._fk_one(list(q))
+        np.testing.assert_allclose(p, T[:3, 3], atol=1e-13)
+        np.testing.assert_allclose(np.reshape(R, (3, 3)), T[:3, :3], atol=1e-13)
+        np.testing.assert_allclose(np.array(cols).T, J, atol=1e-13)
+    # IK: one target at a time (floats) == the same targets in one batch (arrays)
+    Qt = sample(kin, 40, rng)
+    T = kin.fk_batch(Qt)
+    targets, axes = T[:, :3, 3], T[:, :3, :3] @ kin.tool_axis
+    targets[::8] += 5.0                                  # out of reach
+    seeds = np.clip(Qt + rng.normal(0.0, 0.2, Qt.shape), kin.lower, kin.upper)
+    Qb, okb, errb = kin.ik_batch(targets, seeds, axes)
+    one = [kin.ik_batch(t[None], q, a) for t, q, a in zip(targets, seeds, axes)]
+    np.testing.assert_array_equal(np.concatenate([o[1] for o in one]), okb)
+    assert 20 <= okb.sum() <= 35      # (where a target is not reached, the last iterates drift apart)
+    np.testing.assert_allclose(np.concatenate([o[0] for o in one])[okb], Qb[okb], atol=1e-9)
+    np.testing.assert_allclose(np.concatenate([o[2] for o in one])[okb], errb[okb], atol=1e-9)
+    # in pieces == at once
+    big = [np.repeat(x, 3, axis=0) for x in (targets, seeds, axes)]
+    chunk = kin.CHUNK
+    try:
+        kin.CHUNK = 7
+        Qc, okc, errc = kin.ik_batch(*big)
+    finally:
+        kin.CHUNK = chunk
+    Qa, oka, erra = kin.ik_batch(*big)
+    np.testing.assert_array_equal(okc, oka)
+    np.testing.assert_allclose(Qc[oka], Qa[oka], atol=1e-12)
