@@ -7,7 +7,7 @@ import numpy as np
 
 from ambots.coordinate.bands import _phase_of, band_stats, choose_bands
 from ambots.coordinate.emit import ArmProgram, Emitter, resolve_waits
-from ambots.coordinate.steps import END, Step, Wait, _order_runs, cut_segment
+from ambots.coordinate.steps import END, Step, Wait, _order_runs, close, cut_segment
 from ambots.coordinate.zones import distance_to_planes
 
 __all__ = ["banded_programs"]
@@ -132,7 +132,7 @@ def _split_at_bands(seg, planes, t):
     boundary ``t[1:]`` (mm, increasing; band i is [t[i], t[i+1]), the last
     band the rest); E is shared in proportion to length."""
     a, b = np.array(seg.start, dtype=float), np.array(seg.end, dtype=float)
-    if not planes or np.allclose(a, b):
+    if not planes or close(seg.start, seg.end):
         return [seg]
     cuts = []
     for n, off in planes:

@@ -16,7 +16,7 @@ import numpy as np
 from ambots.program import directive
 from ambots.protocol import MoveTo, SendPosition, WaitFor
 
-from ambots.coordinate.steps import END
+from ambots.coordinate.steps import END, close
 
 __all__ = ["ArmProgram", "Emitter", "resolve_waits"]
 
@@ -76,7 +76,7 @@ class _Writer:
             self.parked = False
             self.pos = tuple(p)
             return
-        if self.pos is not None and np.allclose(self.pos, p, atol=1e-6):
+        if self.pos is not None and close(self.pos, p, atol=1e-6):
             return
         if (self.pos is not None and abs(self.pos[2] - p[2]) < 1e-6
                 and np.hypot(self.pos[0] - p[0], self.pos[1] - p[1]) < self.short_travel_mm):
@@ -113,7 +113,7 @@ class _Writer:
                 if s.e:
                     self.emit("G1 E%.5f F%.0f" % (s.e, s.feedrate or self.retract_feed))
                 continue
-            if self.pos is None or not np.allclose(self.pos, s.start, atol=1e-6):
+            if self.pos is None or not close(self.pos, s.start, atol=1e-6):
                 self.travel_to(s.start)
             x, y, z = s.end
             if s.extrude:

@@ -11,7 +11,7 @@ import numpy as np
 
 from ambots.coordinate.emit import ArmProgram, Emitter, resolve_waits
 from ambots.coordinate.schedule import Schedule
-from ambots.coordinate.steps import Step, Wait, cut_segment
+from ambots.coordinate.steps import Step, Wait, close, cut_segment
 
 __all__ = ["timeline_programs", "Seams"]
 
@@ -113,7 +113,7 @@ def _split_at(seg, N, O, W, bands):
     offsets ``O`` (P,)) crosses m ``W[p]``, 1 <= m <= ``bands``; E is shared
     in proportion to length."""
     a, b = np.array(seg.start, dtype=float), np.array(seg.end, dtype=float)
-    if not len(N) or np.allclose(a, b):
+    if not len(N) or close(seg.start, seg.end):
         return [seg]
     fa, fb = N @ a - O, N @ b - O
     cuts = []
