@@ -540,20 +540,24 @@ class GcodeWriter:
             lengths = np.hypot(*np.diff(pts, axis=0).T)
         if len(lengths) == 0:
             return
-        self.travel(pts[0])
-        if path.feature != self.feature:
-            self.chunks.append(";TYPE:%s\n;WIDTH:%.3f\n" % (path.feature, self.s.bead_width_mm))
-            self.feature = path.feature
-        feed = self.feeds[path.feature]
+        e = lengths * (self.s.bead_area_mm2(height) / self.s.filament_area_mm2)
+        self._write(pts[0], path.feature, e, np.column_stack([pts[1:], e]).ravel())
+        self.xy = pts[-1]
+
+    def _write(self, start, feature, e, rows):
+        """Travel to ``start``, then the moves of one path: ``e`` (n,) mm of
+        filament each, ``rows`` their X, Y, E flattened (3 n)."""
+        self.travel(start)
+        if feature != self.feature:
+            self.chunks.append(";TYPE:%s\n;WIDTH:%.3f\n" % (feature, self.s.bead_width_mm))
+            self.feature = feature
+        feed = self.feeds[feature]
         if self.first_layer:
             feed = min(feed, self.s.first_layer_feedrate_mm_min)
-        e = lengths * (self.s.bead_area_mm2(height) / self.s.filament_area_mm2)
         self.filament_mm += float(e.sum())
-        rows = np.column_stack([pts[1:], e]).ravel()
         # one %-format for the whole path: the per-point loop runs in C
         self.chunks.append("G1 F%d\n" % feed)
         self.chunks.append(("G1 X%.3f Y%.3f E%.5f\n" * len(e)) % tuple(rows))
-        self.xy = pts[-1]
 
     def extrude_paths(self, paths, height):
         """:meth:`extrude` of each of ``paths`` in turn (the same text), the
@@ -580,16 +584,7 @@ class GcodeWriter:
             if tiny[b] != tiny[a]:           # moves below the printed resolution: dropped one by one
                 self.extrude(path, height)
                 continue
-            self.travel(P[a])
-            if path.feature != self.feature:
-                self.chunks.append(";TYPE:%s\n;WIDTH:%.3f\n" % (path.feature, self.s.bead_width_mm))
-                self.feature = path.feature
-            feed = self.feeds[path.feature]
-            if self.first_layer:
-                feed = min(feed, self.s.first_layer_feedrate_mm_min)
-            self.filament_mm += float(e_all[a:b].sum())
-            self.chunks.append("G1 F%d\n" % feed)
-            self.chunks.append(("G1 X%.3f Y%.3f E%.5f\n" * (b - a)) % tuple(rows[3 * a:3 * b]))
+            self._write(P[a], path.feature, e_all[a:b], rows[3 * a:3 * b])
             self.xy = P[b]
 
     def travel(self, xy):
