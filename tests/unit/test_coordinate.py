@@ -334,11 +334,11 @@ def test_n_arm_programs_keep_every_pair_a_zone_apart_whatever_the_timing(n_arm_j
     whose work comes within their zone of each other keep their nozzles the
     zone apart across the plane between them, waiting and parking included
     (only the simultaneous departure from the home poses is left out)."""
-    from ambots.coordinate import _read_layers, adjacent_arms
+    from ambots.coordinate import read_sliced, adjacent_arms
     c, parts, sliced, programs, zones = n_arm_jobs[layout]
     arms = [p.arm for p in parts]
     planes = seam_planes(parts)
-    read = {a.name: _read_layers(sliced[a.name], a.name) for a in arms}
+    read = {a.name: read_sliced(sliced[a.name], a.name) for a in arms}
     adjacent = adjacent_arms(arms, read, planes, zones)
     spans = execute(programs, random.Random(seed), home_positions_mm(c, arms))
     counts, slack = closest_across(spans, planes, zones, park_positions_mm(c, arms))
@@ -362,11 +362,11 @@ def test_n_arm_layouts_use_the_schedule_their_adjacency_needs(n_arm_jobs):
     170 mm: the arms' real envelopes, beside each other on alternate sides)
     add up to about the 330 mm between them: they cannot keep clear of both
     neighbours at once as banded sweeps need, so the row is scheduled too."""
-    from ambots.coordinate import _read_layers, adjacent_arms
+    from ambots.coordinate import read_sliced, adjacent_arms
     for layout, scheduled in (("three_arms", True), ("four_arms", True), ("beam_row", True)):
         c, parts, sliced, programs, zones = n_arm_jobs[layout]
         arms = [p.arm for p in parts]
-        read = {a.name: _read_layers(sliced[a.name], a.name) for a in arms}
+        read = {a.name: read_sliced(sliced[a.name], a.name) for a in arms}
         adjacent = adjacent_arms(arms, read, seam_planes(parts), zones)
         if layout == "four_arms":
             assert adjacent["kinova1"] >= {"kinova2", "ur10_1", "ur10_2"}       # the diagonal too
@@ -460,9 +460,9 @@ def test_the_timeline_counts_the_joint_moves_to_and_from_the_park_position():
     (straight in joint space): the nozzle bulges off the straight line, here
     (the Panda of the three-arm cell, towards its seam with the UR10) about
     20 mm nearer the seam than either end.  The timeline's estimate of the
-    move (``_JointMoves``, counted in the step's footprint) follows the
+    move (``JointMoves``, counted in the step's footprint) follows the
     firmware planner's own move."""
-    from ambots.coordinate import _JointMoves
+    from ambots.coordinate import JointMoves
     from ambots.motion import MotionPlanner
     c = load_cell("config/cells/three_arms.yaml")
     panda = c.arm("panda")
@@ -472,7 +472,7 @@ def test_the_timeline_counts_the_joint_moves_to_and_from_the_park_position():
     q_park = planner.kin.ik(planner.bed_mm_to_base(park[None])[0], np.asarray(panda.profile.home), planner.down)
     tip = planner.world_to_bed_mm(planner.joint_move_to(planner.bed_mm_to_base(target[None])[0], q_park).tip)
     low = tip[tip[:, 2] <= c.bed.max_height * 1000.0]
-    est = _JointMoves(c, c.arms).path("panda", park, target)
+    est = JointMoves(c, c.arms).path("panda", park, target)
     assert len(low) and len(est) and np.all(est[:, 2] <= c.bed.max_height * 1000.0)
     assert np.linalg.norm(low[:, None] - est[None], axis=2).min(axis=1).max() < 6.0     # 32 samples
     towards_ur10 = np.array([0.88, 0.47, 0.0]) / np.hypot(0.88, 0.47)

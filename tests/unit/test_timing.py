@@ -21,7 +21,7 @@ import trimesh
 
 from ambots import data_path
 from ambots.config import default_cell_path, load_cell
-from ambots.coordinate import _read_layers, adjacent_arms, seam_planes, seam_zones_for
+from ambots.coordinate import read_sliced, adjacent_arms, seam_planes, seam_zones_for
 from ambots.job import run_job
 from ambots.model import arm_kinematics
 from ambots.contact import Sweep
@@ -67,7 +67,7 @@ def nozzle_slack(result, cell, job, step_s=0.1):
     arms = [p.arm for p in parts]
     planes = seam_planes(parts)
     zones = seam_zones_for(cell, arms, parts)
-    read = {a.name: _read_layers(job.sliced[a.name], a.name) for a in arms}
+    read = {a.name: read_sliced(job.sliced[a.name], a.name) for a in arms}
     adjacent = adjacent_arms(arms, read, planes, zones)
     traces = {n: _trace(r) for n, r in result.runners.items()}
     grid = np.arange(0.0, max(float(tr[0][-1]) for tr in traces.values()) + step_s, step_s)

@@ -69,10 +69,6 @@ from ambots.coordinate.zones import adjacent_arms, seam_planes, seam_zone_for, s
 __all__ = ["ArmProgram", "build_programs", "park_positions_mm", "home_positions_mm", "seam_zone_for",
            "seam_zones_for", "seam_planes", "adjacent_arms", "read_sliced", "Sliced"]
 
-#: the names of before the package (``ambots.coordinate`` was one module)
-_read_layers = read_sliced
-_JointMoves = JointMoves
-
 
 def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=None, idle=()):
     """Build every arm's program.
