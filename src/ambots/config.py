@@ -16,7 +16,7 @@ from typing import Tuple
 import numpy as np
 import yaml
 
-from ambots import data_path
+from ambots import data_path, protocol, topics
 from ambots.errors import ConfigError
 
 __all__ = ["ArmProfile", "ArmInstance", "Bed", "Cell", "Capsule", "load_arm_profile", "load_cell",
@@ -346,10 +346,17 @@ def load_arm_profile(path):
 class ArmInstance:
     """One arm standing in a cell."""
     name: str            #: instance name; also the tf prefix ``<name>/`` and the ROS namespace
-    id: int              #: robot id used by the A-series protocol (``R<id>``)
+    id: int              #: robot id used by the A-series protocol (``R<id>``), 0..999
     profile: ArmProfile
     base_xyz: Tuple[float, float, float]
     base_rpy: Tuple[float, float, float]
+    #: the firmware's inbox (std_msgs/String), where the hub forwards this arm's
+    #: commands; the cell's ``topic``, default ``/<name>/firmware_topic``
+    inbox: str = ""
+
+    def __post_init__(self):
+        if not self.inbox:
+            object.__setattr__(self, "inbox", topics.default_arm_topic(self.name))
 
     @property
     def prefix(self):
@@ -406,7 +413,26 @@ class Cell:
 
 
 _NAME_OK = set("abcdefghijklmnopqrstuvwxyz0123456789_")
-_MAX_ROBOT_ID = 2 ** 31 - 1      # ambots.protocol.MAX_ID: the R word's range
+_TOPIC_OK = _NAME_OK | set("ABCDEFGHIJKLMNOPQRSTUVWXYZ/")
+#: topics of the hub, the front end and the cell's bookkeeping: no arm's inbox
+_RESERVED_TOPICS = {topics.HUB_TOPIC, topics.ERROR_TOPIC, topics.PROGRESS_TOPIC, topics.FRONT_END_TOPIC,
+                    topics.CLOCK_READY_TOPIC}
+
+
+def _inbox(a, name, taken):
+    """The ``topic`` of cell entry ``a`` (arm ``name``): a global ROS topic
+    name not used by another arm nor by the hub's own topics."""
+    topic = a.str("topic", topics.default_arm_topic(name))
+    parts = topic.split("/")
+    if (not topic.startswith("/") or not set(topic) <= _TOPIC_OK
+            or any(not p or p[0].isdigit() for p in parts[1:])):
+        raise ConfigError(a.path, a._name("topic"),
+                          "%r: a global ROS topic name, e.g. /ambots/%s_topic" % (topic, name))
+    if topic in _RESERVED_TOPICS or topic in taken:
+        raise ConfigError(a.path, a._name("topic"), "%r is already the topic of %s"
+                          % (topic, taken.get(topic, "the hub or the front end")))
+    taken[topic] = "arm %r" % name
+    return topic
 
 
 def load_cell(path, min_base_distance=0.25):
@@ -425,7 +451,7 @@ def load_cell(path, min_base_distance=0.25):
     bed_pose = bed.sub("pose")
     the_bed = Bed(size, bed_pose.vec("xyz", 3), bed_pose.vec("rpy", 3, (0.0, 0.0, 0.0)),
                   bed.num("max_height", 0.15, positive=True))
-    arms, names, ids = [], set(), set()
+    arms, names, ids, inboxes = [], set(), set(), {}
     for a in r.items("arms"):
         name = a.str("name")
         if not set(name) <= _NAME_OK or name[0].isdigit():
@@ -433,9 +459,10 @@ def load_cell(path, min_base_distance=0.25):
         if name in names:
             raise ConfigError(path, a.prefix + ".name", "duplicate arm name %r" % name)
         rid = a.get("id")
-        if isinstance(rid, bool) or not isinstance(rid, int) or not 1 <= rid <= _MAX_ROBOT_ID:
-            raise ConfigError(path, a.prefix + ".id", "expected an integer 1..%d (an A-series robot "
-                              "id), got %r" % (_MAX_ROBOT_ID, rid))
+        if isinstance(rid, bool) or not isinstance(rid, int) or not 0 <= rid <= protocol.MAX_ROBOT:
+            raise ConfigError(path, a.prefix + ".id", "expected an integer 0..%d (an A-series robot "
+                              "id; %d is the front end, %d the hub), got %r"
+                              % (protocol.MAX_ROBOT, protocol.FRONT_END, protocol.HUB, rid))
         if rid in ids:
             raise ConfigError(path, a.prefix + ".id", "duplicate robot id %d" % rid)
         prof_path = resolve_path(a.str("profile"), path)
@@ -444,7 +471,8 @@ def load_cell(path, min_base_distance=0.25):
         except ConfigError as exc:
             raise ConfigError(path, a.prefix + ".profile", str(exc)) from None
         base = a.sub("base")
-        arms.append(ArmInstance(name, rid, profile, base.vec("xyz", 3), base.vec("rpy", 3, (0.0, 0.0, 0.0))))
+        arms.append(ArmInstance(name, rid, profile, base.vec("xyz", 3), base.vec("rpy", 3, (0.0, 0.0, 0.0)),
+                                _inbox(a, name, inboxes)))
         names.add(name)
         ids.add(rid)
     for i, a in enumerate(arms):

@@ -15,9 +15,12 @@ One incoming message (:meth:`Hub.handle`):
 5. routing:
 
    - A1..A7, A9: to arm R (A9's W must be an arm too), forwarded with the
-     hub's own numbering (S0, Q from :class:`ambots.reliable.Sender`) and
-     retried by :meth:`Hub.tick` until acknowledged;
-   - A8 R0: settles one of the hub's messages; A8 R<n>: to node n's inbox as is;
+     hub's own numbering (S1001, Q from :class:`ambots.reliable.Sender`) and
+     retried by :meth:`Hub.tick` until acknowledged; except an A3 R<x> from
+     another arm, which means what it meant in the original: "send my
+     position to arm x", so it goes back to its sender, whose A10 with its
+     position then reaches arm x;
+   - A8 R1001: settles one of the hub's messages; A8 R<n>: to node n's inbox as is;
    - A10 / A11 (an arm about itself only): progress / a line on the error
      topic, then forwarded like a command -- A10 to the front end and to the
      other arms (their A9 barriers and A3 position replies need it), A11 to
@@ -42,7 +45,7 @@ from typing import Optional, Tuple
 
 from ambots import topics
 from ambots.errors import ConfigError, ProtocolError
-from ambots.protocol import Ack, ArmState, ErrorReport, Status, WaitFor, decode, encode
+from ambots.protocol import Ack, ArmState, ErrorReport, SendPosition, Status, WaitFor, decode, encode
 from ambots.reliable import Receiver, Sender, Verdict
 
 #: longest excerpt of a refused text quoted on the error topic (characters)
@@ -74,7 +77,7 @@ class Registry:
     (``topics.FRONT_END_ID``) and tools (``extra_callers``)."""
 
     def __init__(self, cell, extra_callers=()):
-        self.arms = {a.id: Endpoint(a.id, topics.arm_node(a.name), topics.arm_topic(a.name),
+        self.arms = {a.id: Endpoint(a.id, topics.arm_node(a.name), topics.arm_topic(a),
                                     "arm %s (R%d)" % (a.name, a.id)) for a in cell.arms}
         if topics.FRONT_END_ID in self.arms:
             raise ConfigError(cell.path, "arms", "robot id %d is the front end's node id"
@@ -251,6 +254,10 @@ class Hub:
         target = self.registry.arm(msg.robot)
         if isinstance(msg, WaitFor):
             self.registry.arm(msg.other, "W")
+        if isinstance(msg, SendPosition) and src.id in self.registry.arms and src.id != msg.robot:
+            # the original's A3 from an arm: "send MY position to arm R"; the
+            # sender reports it (A10 with X Y Z), which reaches arm R with the others
+            target = src
         return [self._forward(msg, target, now)]
 
     def _on_ack(self, ack, src):

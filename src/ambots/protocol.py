@@ -64,8 +64,8 @@ acknowledged; the receiver holds the message (no A8) until it has executed
 (sender, B), so each sender's commands take effect in the order sent even
 when the network reorders them (an A1 can never overtake its A5).
 
-Ranges: robot ids (R except in A8, W) are 1..2**31-1; node ids (S, and R in
-A8) are 0..2**31-1 where 0 (:data:`HUB`) is the hub; Q, B, C, K 0..2**32-1;
+Ranges: robot ids (R except in A8, W) are 0..999 (:data:`MAX_ROBOT`); node ids (S, and R in
+A8) are 0..2**31-1: the robots, 1000 the front end (:data:`FRONT_END`), 1001 the hub (:data:`HUB`); Q, B, C, K 0..2**32-1;
 L, N 0..2**31-1; X Y Z |v| <= 1e6 mm; P 0..100; M 0..1e10 s (ROS time: a simulated clock from 0, or Unix time).
 """
 import json
@@ -79,7 +79,9 @@ from typing import ClassVar, Optional, Tuple
 from ambots.errors import ProtocolError
 from ambots.gcode import MAX_ABS_MM, is_a_series_line
 
-HUB = 0                  #: node id of the hub (robots are 1, 2, ...)
+MAX_ROBOT = 999          #: robot ids are 0..999 (the cell's ``id``; the original's Kinova 0, UR10 1)
+FRONT_END = 1000         #: node id of the front end
+HUB = 1001               #: node id of the hub
 MAX_ID = 2 ** 31 - 1
 MAX_U32 = 2 ** 32 - 1
 MAX_TEXT = 512           #: longest A11 message text (characters)
@@ -152,8 +154,8 @@ class _State(_Int):
         return ArmState(super().check(v))
 
 
-_ROBOT = _Int(1, MAX_ID, "a robot id 1..%d" % MAX_ID)
-_NODE = _Int(0, MAX_ID, "a node id 0..%d (0 = hub)" % MAX_ID)
+_ROBOT = _Int(0, MAX_ROBOT, "a robot id 0..%d" % MAX_ROBOT)
+_NODE = _Int(0, MAX_ID, "a node id 0..%d (robots 0..%d, front end %d, hub %d)" % (MAX_ID, MAX_ROBOT, FRONT_END, HUB))
 _U32 = _Int(0, MAX_U32, "an integer 0..%d" % MAX_U32)
 _COUNT = _Int(0, MAX_ID, "an integer 0..%d" % MAX_ID)
 _MM = _Num(-MAX_ABS_MM, MAX_ABS_MM, "a coordinate within +-%g mm" % MAX_ABS_MM)
@@ -420,6 +422,21 @@ def encode(cmd):
     if isinstance(cmd, ErrorReport):
         parts.append(json.dumps(cmd.message, ensure_ascii=True))
     return " ".join(parts)
+
+
+def one_line(text, limit=200):
+    """A message's text on one printable line, for logs (``debug:=true``):
+    an A5's command line with its payload counted, ``A5 R0 C3 L21 K38 S1001 Q41
+    (+2 G-code lines)``; anything else as is, escaped and cut to ``limit``
+    characters.  Never raises (malformed text is logged too)."""
+    if not isinstance(text, str):
+        text = repr(text)
+    header, newline, payload = text.partition("\n")
+    extra = " (+%d G-code lines)" % len(payload.splitlines()) if newline and payload else ""
+    shown = "".join(c if c.isprintable() else repr(c)[1:-1] for c in header)
+    if len(shown) > limit:
+        shown = shown[:limit] + "..."
+    return shown + extra
 
 
 def decode(text):

@@ -1,8 +1,10 @@
 """Names shared by every node: topics, node names and protocol node ids.
 
 One place, so that the hub, the firmware nodes and the front end agree.
-Per-arm names are derived from the arm's instance name in the cell.
+Per-arm names are derived from the arm's instance name in the cell; an
+arm's inbox topic is the cell's (``ArmInstance.inbox``).
 """
+from ambots import protocol
 
 #: every A-series message to anyone goes here (std_msgs/String); the hub routes it
 HUB_TOPIC = "/ambots/communication_hub_topic"
@@ -13,19 +15,26 @@ PROGRESS_TOPIC = "/ambots/progress"
 #: the front end's inbox (acks and status for it), std_msgs/String
 FRONT_END_TOPIC = "/ambots/front_end_topic"
 
-#: protocol node id of the hub (``S0``)
-HUB_ID = 0
-#: protocol node id of the front end; robot ids are 1..999 (from the cell)
-FRONT_END_ID = 1000
+#: protocol node id of the hub (``S1001``)
+HUB_ID = protocol.HUB
+#: protocol node id of the front end; robot ids are 0..999 (from the cell)
+FRONT_END_ID = protocol.FRONT_END
 #: ROS node name of the front end (the hub checks callers against it)
 FRONT_END_NODE = "/front_end"
 #: ROS node name of the hub
 HUB_NODE = "/communication_hub"
 
 
-def arm_topic(arm_name):
-    """The inbox of arm ``arm_name``'s firmware (std_msgs/String)."""
+def default_arm_topic(arm_name):
+    """The inbox of an arm whose cell entry names none: ``/<arm>/firmware_topic``."""
     return "/%s/firmware_topic" % arm_name
+
+
+def arm_topic(arm):
+    """The inbox of ``arm``'s firmware (std_msgs/String): its cell entry's
+    ``topic`` (``ambots.config.ArmInstance.inbox``); the default cell keeps
+    the original's ``/ambots/kinova_topic`` and ``/ambots/ur_topic``."""
+    return arm.inbox
 
 
 def arm_node(arm_name):

@@ -176,7 +176,7 @@ def wait_for_firmware(cell, timeout=60.0):
             return False
         subs, pubs = dict(subs), dict(pubs)
         return topics.HUB_NODE in subs.get(topics.HUB_TOPIC, []) and all(
-            topics.arm_node(a.name) in subs.get(topics.arm_topic(a.name), []) and
+            topics.arm_node(a.name) in subs.get(topics.arm_topic(a), []) and
             topics.arm_node(a.name) in pubs.get(topics.HUB_TOPIC, []) for a in cell.arms)
     wait_until(up, "the hub and the firmware of %s" % ", ".join(a.name for a in cell.arms), timeout, 0.1)
 

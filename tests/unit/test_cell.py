@@ -35,7 +35,9 @@ def write_cell(tmp_path, mutate):
 
 def test_default_cell_has_two_arms_facing_each_other_across_the_bed(cell):
     assert [a.name for a in cell.arms] == ["kinova", "ur10"]
-    assert [a.id for a in cell.arms] == [1, 2]
+    # the original's robot ids and inbox topics
+    assert [a.id for a in cell.arms] == [0, 1]
+    assert [a.inbox for a in cell.arms] == ["/ambots/kinova_topic", "/ambots/ur_topic"]
     kinova, ur10 = cell.arms
     assert ur10.base_xyz[0] == pytest.approx(1.5)
     assert abs(ur10.base_rpy[2]) == pytest.approx(np.pi)       # turned to face the Kinova
@@ -87,7 +89,11 @@ def test_shipped_rviz_config_is_what_the_generator_makes(cell):
     (lambda d: d["bed"].pop("size"), "bed.size", "missing field"),
     (lambda d: d["arms"][1]["base"].update(xyz=[0.1, 0.0, 0.0]), "arms", "overlap: 0.100 m apart"),
     (lambda d: d["arms"][1].update(profile="config/arms/no_such_arm.yaml"), "arms[1].profile", "not found"),
-    (lambda d: d["arms"][1].update(id=1), "arms[1].id", "duplicate robot id 1"),
+    (lambda d: d["arms"][1].update(id=0), "arms[1].id", "duplicate robot id 0"),
+    (lambda d: d["arms"][1].update(id=1000), "arms[1].id", "1000 is the front end, 1001 the hub"),
+    (lambda d: d["arms"][1].update(topic="/ambots/kinova_topic"), "arms[1].topic", "already the topic of arm 'kinova'"),
+    (lambda d: d["arms"][1].update(topic="/ambots/communication_hub_topic"), "arms[1].topic", "hub"),
+    (lambda d: d["arms"][1].update(topic="ur_topic"), "arms[1].topic", "a global ROS topic name"),
     (lambda d: d["arms"][0].update(name="Kinova Arm"), "arms[0].name", "lower-case"),
     (lambda d: d["arms"][0]["base"].update(rpy=[0, 0, "x"]), "arms[0].base.rpy", "3 finite numbers"),
     (lambda d: d.update(arms=[]), "arms", "non-empty list"),
@@ -97,6 +103,11 @@ def test_bad_cells_name_the_file_and_field(tmp_path, mutate, field, message):
     with pytest.raises(ConfigError) as err:
         load_cell(path)
     assert err.value.field == field and message in str(err.value) and path in str(err.value)
+
+
+def test_an_arm_without_a_topic_gets_the_default_inbox(tmp_path):
+    cell = load_cell(write_cell(tmp_path, lambda d: d["arms"][0].pop("topic")))
+    assert [a.inbox for a in cell.arms] == ["/kinova/firmware_topic", "/ambots/ur_topic"]
 
 
 def test_unknown_arm_is_refused_by_name(cell):
@@ -128,7 +139,7 @@ def test_cli_help_and_cell_command(tmp_path):
     out = tmp_path / "cell.urdf"
     r = run("cell", "--urdf", str(out))
     assert r.returncode == 0, r.stderr
-    assert "R2 ur10" in r.stdout and "reaches 50/50" in r.stdout
+    assert "R1 ur10" in r.stdout and "inbox /ambots/ur_topic" in r.stdout and "reaches 50/50" in r.stdout
     ET.parse(str(out))
     r = run("cell", "--cell", str(tmp_path / "missing.yaml"))
     assert r.returncode == 2 and "missing.yaml: cell file not found" in r.stderr

@@ -58,7 +58,7 @@ def no_pwned(root):
 # =============================================================================
 
 FRONT_END, KINOVA, INTRUDER = "/front_end", "/kinova/firmware", "/intruder"
-KINOVA_IN, ERR = topics.arm_topic("kinova"), topics.ERROR_TOPIC
+KINOVA_IN, ERR = "/ambots/kinova_topic", topics.ERROR_TOPIC
 
 
 def _random_bytes(seed):
@@ -121,9 +121,9 @@ def busy_hub(cell):
     """A hub in the middle of a job: a command in flight to each arm and a
     status report from the Kinova."""
     hub = Hub(cell, extra_callers=["/tool"], sender=Sender(topics.HUB_ID, first_seq=100))
-    hub.handle("A1 R2 S1000 Q1", FRONT_END, 0.0)
-    hub.handle("A4 R1 S1000 Q2", FRONT_END, 0.0)
-    hub.handle("A10 R1 T1 L3 N40 P12.5 S1 Q7", KINOVA, 0.5)
+    hub.handle("A1 R1 S1000 Q1", FRONT_END, 0.0)
+    hub.handle("A4 R0 S1000 Q2", FRONT_END, 0.0)
+    hub.handle("A10 R0 T1 L3 N40 P12.5 S0 Q7", KINOVA, 0.5)
     return hub
 
 
@@ -151,7 +151,7 @@ def test_hub_refuses_bad_strings_and_keeps_its_state(busy_hub, caller, text, rea
         assert "malformed: " in line and reason in line, line
     assert hub_state(busy_hub) == before
     # the next good message is routed as usual
-    posts = busy_hub.handle("A6 R1 S1000 Q3", FRONT_END, 1.1)
+    posts = busy_hub.handle("A6 R0 S1000 Q3", FRONT_END, 1.1)
     assert [decode(p.text).CODE for p in posts if p.topic == KINOVA_IN] == [6]
 
 
@@ -166,20 +166,20 @@ def test_hub_survives_a_seeded_fuzz_from_every_kind_of_caller(busy_hub):
                 if p.topic == ERR:
                     assert "\n" not in p.text
     assert hub_state(busy_hub)[:2] == before[:2]          # the registry never changes
-    posts = busy_hub.handle("A6 R1 S1000 Q3", FRONT_END, 1.1)
+    posts = busy_hub.handle("A6 R0 S1000 Q3", FRONT_END, 1.1)
     assert [decode(p.text).CODE for p in posts if p.topic == KINOVA_IN] == [6]
 
 
 @pytest.mark.parametrize("message, shown", [
-    ("line one\nA1 R2 fake second line", "line one\\nA1 R2 fake second line"),
+    ("line one\nA1 R1 fake second line", "line one\\nA1 R1 fake second line"),
     ("bell \x07 and escape \x1b[31m", "bell \\x07 and escape \\x1b[31m"),
     ("lone surrogate \ud800", "lone surrogate \\ud800"),
 ], ids=["newline", "control", "surrogate"])
 def test_an_arms_error_text_stays_one_printable_line_on_the_error_topic(busy_hub, message, shown):
-    text = "A11 R1 N5 S1 Q8 %s" % json.dumps(message)       # valid A11: JSON carries anything
+    text = "A11 R0 N5 S0 Q8 %s" % json.dumps(message)       # valid A11: JSON carries anything
     posts = busy_hub.handle(text, KINOVA, 1.0)
     [line] = [p.text for p in posts if p.topic == ERR]
-    assert line == "arm kinova (R1) error at G-code line 5: " + shown
+    assert line == "arm kinova (R0) error at G-code line 5: " + shown
     line.encode("utf-8")                                    # publishable by ROS
 
 

@@ -37,9 +37,9 @@ def run(args):
     for i, arm in enumerate(cell.arms):
         kin = arm_kinematics(arm)
         reach = bed_reachability(cell, arm, kin)
-        line = ("  R%d %-10s %-12s base (%.3f, %.3f, %.3f) m yaw %.1f deg, %d joints; "
+        line = ("  R%d %-10s %-12s inbox %s, base (%.3f, %.3f, %.3f) m yaw %.1f deg, %d joints; "
                 "reaches %d/%d bed test points (nozzle down)" %
-                (arm.id, arm.name, arm.profile.name, *arm.base_xyz, np.degrees(arm.base_rpy[2]),
+                (arm.id, arm.name, arm.profile.name, arm.inbox, *arm.base_xyz, np.degrees(arm.base_rpy[2]),
                  kin.dof, reach.sum(), reach.size))
         if share is not None:
             pts = share[1][share[0] == i]

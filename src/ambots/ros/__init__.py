@@ -15,6 +15,35 @@ def state_dir(value):
     return d
 
 
+class ASeriesLog:
+    """``debug:=true``: one log line for every A-series message a node sends
+    or receives, as the original printed them (``hub <- /ambots/kinova_topic:
+    A10 R0 ...``); a no-op when ``enabled`` is false.  ``who``: the node, as
+    shown (``hub``, ``kinova firmware``, ``front end``)."""
+
+    def __init__(self, who, enabled):
+        self.who, self.enabled = who, bool(enabled)
+
+    def sent(self, topic, text):
+        if self.enabled:
+            self._log("->", topic, text)
+
+    def received(self, peer, text):
+        if self.enabled:
+            self._log("<-", peer, text)
+
+    def _log(self, arrow, peer, text):
+        import rospy
+        from ambots.protocol import one_line
+        rospy.loginfo("[A-series] %s %s %s: %s", self.who, arrow, peer, one_line(text))
+
+
+def debug_param():
+    """The node's ``~debug`` param as a bool ("true", "1", True...)."""
+    import rospy
+    return str(rospy.get_param("~debug", False)).strip().lower() in ("true", "1", "yes", "on")
+
+
 class WallTimer:
     """Calls ``callback()`` every ``period`` wall seconds in a daemon thread
     until ROS shuts down or :meth:`shutdown`.  For retransmissions and other

@@ -86,6 +86,7 @@ from ambots.motion import MotionPlanner
 from ambots.protocol import (HUB, Ack, ArmState, ClearChunk, LoadChunk, Pause, SendPosition, Start, Status,
                              decode, encode)
 from ambots.reliable import Receiver, Sender, Verdict, seq_seed
+from ambots.ros import ASeriesLog, debug_param
 from ambots.ros.driver import DRIVERS, TrajectoryDriver
 from ambots.runner import ArmRunner, Bead, RunStats
 from ambots.rviz import DEPOSIT_TOPIC
@@ -257,6 +258,7 @@ class FirmwareNode:
         self.rate = float(rate)
         #: the one clock is simulated (/clock, use_sim_time) rather than the wall
         self.sim_clock = bool(rospy.get_param("/use_sim_time", False))
+        self.log = ASeriesLog("%s firmware" % arm.name, debug_param())
         self.report_period, self.marker_period = report_period, 1.0 / marker_rate
         self.retry_period = retry_period
         self.collision = CollisionCheck(arm, cell, clearance_mm * MM)
@@ -326,7 +328,7 @@ class FirmwareNode:
                                  self._on_other_joints, callback_args=other, queue_size=1)
         if self.driver is not None:
             self.driver.start(self.runner)
-        rospy.Subscriber(topics.arm_topic(arm.name), String, self._on_inbox, queue_size=1000)
+        rospy.Subscriber(topics.arm_topic(arm), String, self._on_inbox, queue_size=1000)
         with self.lock:
             self._outgoing = [self.runner.status(with_position=True)]   # here I am
             if self.store is not None:
@@ -351,7 +353,13 @@ class FirmwareNode:
             return
         self.collision.update(other.name, q)
 
+    def _send(self, text):
+        """Publish ``text`` to the hub (logged with ``~debug``)."""
+        self.log.sent(topics.HUB_TOPIC, text)
+        self._to_hub.publish(String(text))
+
     def _on_inbox(self, msg):
+        self.log.received("hub via " + self.arm.inbox, msg.data)
         try:
             message = decode(msg.data)
         except ProtocolError as exc:
@@ -517,9 +525,9 @@ class FirmwareNode:
                         rospy.logwarn("%s firmware: a trajectory chunk was sent %.3f s after its start: raise "
                                       "~command_delay", self.arm.name, -self.driver.min_lead)
                 for a in acks:
-                    self._to_hub.publish(String(encode(a)))
+                    self._send(encode(a))
                 for o in numbered:
-                    self._to_hub.publish(String(encode(o.message)))
+                    self._send(encode(o.message))
                 for key, pub, rows in zip(("trace", "beads"), (self._trace, self._bead_times), self._traced):
                     if rows is not None:          # numbered (data_offset): a subscriber can tell a gap
                         self._row_seq[key] += 1
@@ -529,7 +537,7 @@ class FirmwareNode:
                     with self._io:
                         due = self.sender.due(wall)
                     for o in due:
-                        self._to_hub.publish(String(encode(o.message)))
+                        self._send(encode(o.message))
                 # joint states at every new instant of the one clock, stamped with it (with
                 # the wall as the clock, at most at the tick rate; with a controller, at
                 # the tick rate stamped with ROS time: its joints, which move on even

@@ -2,7 +2,7 @@
 :class:`ambots.frontend.ReliableLink` -- a publisher on ``topics.HUB_TOPIC``
 (the hub knows the front end by its node name ``/front_end``), a subscriber
 on ``topics.FRONT_END_TOPIC`` (the hub's acks of our messages, and the arms'
-A10/A11 it forwards, which the link acknowledges with ``A8 R0 Q<q> S1000``
+A10/A11 it forwards, which the link acknowledges with ``A8 R1001 Q<q> S1000``
 back to the hub), a subscriber on the hub's progress (``--follow``), and a
 timer for retransmissions."""
 import time
@@ -12,7 +12,7 @@ from std_msgs.msg import String
 
 from ambots import topics
 from ambots.frontend import ReliableLink
-from ambots.ros import WallTimer
+from ambots.ros import ASeriesLog, WallTimer
 
 
 class RosLink(ReliableLink):
@@ -21,7 +21,8 @@ class RosLink(ReliableLink):
     how often due retransmissions are looked for; other keywords go to
     :class:`~ambots.frontend.ReliableLink`."""
 
-    def __init__(self, retry_period=0.05, **kw):
+    def __init__(self, retry_period=0.05, debug=False, **kw):
+        self.log = ASeriesLog("front end", debug)
         self._pub = rospy.Publisher(topics.HUB_TOPIC, String, queue_size=100)
         super().__init__(self._publish, **kw)
         self._sub = rospy.Subscriber(topics.FRONT_END_TOPIC, String, self._on_message, queue_size=1000)
@@ -30,9 +31,11 @@ class RosLink(ReliableLink):
         self._timer = WallTimer(retry_period, self.tick)      # wall time: a simulated clock may stand still
 
     def _publish(self, text):
+        self.log.sent(topics.HUB_TOPIC, text)
         self._pub.publish(String(text))
 
     def _on_message(self, msg):
+        self.log.received("hub via " + topics.FRONT_END_TOPIC, msg.data)
         self.receive_text(msg.data)
 
     def wait_for_hub(self, timeout):

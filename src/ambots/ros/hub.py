@@ -27,7 +27,7 @@ from ambots import topics
 from ambots.checkpoint import read_json, write_json
 from ambots.clock import HubState
 from ambots.faults import FaultSpec, FaultyChannel
-from ambots.ros import WallTimer
+from ambots.ros import ASeriesLog, WallTimer
 
 #: the hub keeps time by the wall: retries, fault delays and progress go on
 #: while a simulated clock (/clock) waits for the messages to arrive
@@ -41,8 +41,9 @@ class HubNode:
     every call into the hub holds one lock."""
 
     def __init__(self, hub, retry_period=0.05, progress_period=1.0, faults=FaultSpec(), state_file=None,
-                 run_id=""):
+                 run_id="", debug=False):
         self.hub = hub
+        self.log = ASeriesLog("hub", debug)
         self.state_file, self.run_id = state_file, run_id
         self.resumed = False
         self.retry_period, self.progress_period = retry_period, progress_period
@@ -83,6 +84,7 @@ class HubNode:
 
     def _on_message(self, msg):
         caller = msg._connection_header["callerid"]
+        self.log.received(caller, msg.data)
         with self._lock:
             if self.faults:
                 self._in.push((msg.data, caller), _now())
@@ -97,6 +99,7 @@ class HubNode:
                 posts += self.hub.handle(text, caller, now)
             self._publish(posts)                  # one save for the batch
             for post in self._out.pop_due(now):
+                self.log.sent(post.topic, post.text)
                 self._pubs[post.topic].publish(String(post.text))
 
     def _on_retry_timer(self):
@@ -151,4 +154,6 @@ class HubNode:
             elif self.faults and post.topic != topics.ERROR_TOPIC:
                 self._out.push(post, now)
             else:
+                if post.topic != topics.ERROR_TOPIC:
+                    self.log.sent(post.topic, post.text)
                 self._pubs[post.topic].publish(String(post.text))
