@@ -13,6 +13,12 @@ The menu of the original design, same five choices in the same order::
   (:func:`ambots.job.run_job`) and writes ``DIR/<arm>.gcode``, ``<arm>.stl``
   and ``job.json`` (:func:`ambots.job.write_job`; ``DIR`` = ``--out``, else
   ``out/<model stem>``).  The job stays in memory for 3 and 4.
+  1 and 2 slice with the menu's ``slicer``: ``builtin``, ``prusa`` or
+  ``auto`` (:func:`ambots.slicer.choose_backend`: PrusaSlicer where
+  ``prusa-slicer`` is installed, as the original did, else the built-in
+  slicer; the command line's default for the menu), and say which one and
+  why (``slicer: PrusaSlicer 2.5.0 (/usr/bin/prusa-slicer); --slicer auto:
+  prusa-slicer is installed``) before slicing.
 - 3 sends each arm its whole program as one A5 chunk
   (:class:`ambots.protocol.LoadChunk`) through the hub and waits until the
   hub has acknowledged every chunk.  Without a job in memory it asks for a
@@ -373,8 +379,10 @@ class Menu:
 
     ``link``: see :class:`ReliableLink`.  ``cell``: the loaded cell.
     ``model``: default answer of choice 2 and model of :meth:`print_job`;
-    ``out``: output folder (default ``out/<model stem>``); ``slicer``,
-    ``mode``, ``seam``: as ``python -m ambots slice``.  ``input(prompt)``
+    ``out``: output folder (default ``out/<model stem>``); ``slicer``:
+    ``builtin``, ``prusa`` or ``auto`` (see the module docstring; the
+    command line's default for the menu is ``auto``); ``mode``, ``seam``:
+    as ``python -m ambots slice``.  ``input(prompt)``
     reads an answer (EOFError = end of input), ``output(line)`` and
     ``error(line)`` write one (``error`` defaults to ``output``);
     ``clock()`` (s) times the waits.  ``timeout``: how long choice 4 follows
@@ -494,9 +502,12 @@ class Menu:
         """Run the job pipeline on ``path`` and write the programs; the job
         becomes the current one.  Raises AmbotsError / OSError."""
         from ambots.job import run_job, write_job
-        self.say("slicing %s (cell %s, %s slicer, %s mode) ..." % (path, self.cell.name, self.slicer, self.mode))
+        from ambots.slicer import choose_backend
+        slicer = choose_backend(self.slicer)
+        self.say("slicer: %s; %s" % (slicer.description, slicer.reason))
+        self.say("slicing %s (cell %s, %s slicer, %s mode) ..." % (path, self.cell.name, slicer.backend, self.mode))
         t0 = time.monotonic()
-        job = run_job(path, self.cell, self.arms, slicer=self.slicer, mode=self.mode, seam=self.seam)
+        job = run_job(path, self.cell, self.arms, slicer=slicer.backend, mode=self.mode, seam=self.seam)
         out = self.out or os.path.join("out", os.path.splitext(os.path.basename(path))[0] or "model")
         summary = write_job(job, out)
         self.job, self.programs, self.directory, self.sent = job, dict(job.programs), out, False
@@ -690,7 +701,10 @@ def build_parser(prog="front_end"):
     p.add_argument("--model", help="model file, mm: choice 2's default answer, and what --print prints "
                                    "(default for --print: the demo block)")
     p.add_argument("--cell", help="cell YAML (default: config/cells/kinova_ur10.yaml)")
-    p.add_argument("--slicer", choices=("builtin", "prusa"), default="builtin")
+    p.add_argument("--slicer", choices=("auto", "builtin", "prusa"),
+                   help="auto: PrusaSlicer where prusa-slicer is installed (as the original), else the built-in "
+                        "slicer; builtin or prusa: that one, or an error (default: auto in the menu, builtin "
+                        "with --print)")
     p.add_argument("--mode", choices=("concurrent", "sequential"), default="concurrent")
     p.add_argument("--arms", help="comma-separated arms to print with, e.g. ur10 (default: the planner chooses "
                                   "the fastest of the cell's arms together and each arm alone)")
@@ -709,5 +723,8 @@ def build_parser(prog="front_end"):
 def menu_from_args(args, link, cell, **kw):
     """A :class:`Menu` configured by :func:`build_parser`'s ``args``."""
     arms = [cell.arm(n.strip()) for n in args.arms.split(",")] if getattr(args, "arms", None) else None
-    return Menu(link, cell, model=args.model, out=args.out, slicer=args.slicer, mode=args.mode, arms=arms,
+    # the menu slices like the original (PrusaSlicer where installed); a scripted --print job keeps
+    # the same G-code on every machine unless --slicer says otherwise
+    slicer = args.slicer or ("builtin" if args.print_job else "auto")
+    return Menu(link, cell, model=args.model, out=args.out, slicer=slicer, mode=args.mode, arms=arms,
                 timeout=None if args.print_job else args.timeout, **kw)
