@@ -1,4 +1,5 @@
-"""Menu choice 1 end to end (issue 16, item 6).
+"""Menu choice 1 end to end, and choice 3 with programs named by robot id
+(issue 16, items 6 and 1).
 
 Choice 1 is driven as the operator drives it: the menu built from the
 front end's own command line (:func:`ambots.frontend.menu_from_args`, no
@@ -18,6 +19,7 @@ import re
 import shutil
 import stat
 import subprocess
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -27,7 +29,7 @@ from ambots import data_path
 from ambots.config import default_cell_path, load_cell
 from ambots.frontend import EXIT_OK, build_parser, load_programs, menu_from_args
 from ambots.gcode import GCodeWarning, Segment, read_gcode
-from ambots.job import DEMO_MODEL
+from ambots.job import DEMO_MODEL, run_job, write_job
 from ambots.protocol import ArmState, LoadChunk, Start, Status, decode
 from ambots.slicer import SliceSettings
 from shapes import cube                             # tests/unit/shapes.py
@@ -191,3 +193,76 @@ def test_the_menu_defaults_to_auto_and_a_scripted_print_to_builtin(cell):
     assert menu_from_args(parse(["--print"]), FakeLink(), cell).slicer == "builtin"
     assert menu_from_args(parse(["--print", "--slicer", "auto"]), FakeLink(), cell).slicer == "auto"
     assert menu_from_args(parse(["--slicer", "builtin"]), FakeLink(), cell).slicer == "builtin"
+
+
+# ------------------------------------------------------------------ choice 3: files named by robot id
+
+@pytest.fixture(scope="module")
+def sequential(cell, tmp_path_factory):
+    """A cube on both arms, sequential (the first program starts the second with ;@A1)."""
+    model = tmp_path_factory.mktemp("models") / "cube20.stl"
+    cube().export(str(model))
+    return run_job(str(model), cell, list(cell.arms), mode="sequential")
+
+
+def by_robot_id(directory, cell, names=None):
+    """Rename ``<arm>.gcode`` to ``<robot id>.gcode`` (the cell's ids)."""
+    for arm in cell.arms:
+        if names is None or arm.name in names:
+            os.rename(directory / (arm.name + ".gcode"), directory / ("%d.gcode" % arm.id))
+
+
+def test_choice_3_loads_programs_named_by_robot_id(cell, sequential, tmp_path):
+    write_job(sequential, str(tmp_path))
+    texts = {a.id: (tmp_path / (a.name + ".gcode")).read_text() for a in cell.arms}
+    by_robot_id(tmp_path, cell)
+    s = Session(["3", str(tmp_path), "5"], cell)
+    assert s.run() == EXIT_OK and s.errors == [], s.text
+    assert "loaded %s from %s" % (", ".join("%d.gcode for %s (R%d)" % (a.id, a.name, a.id) for a in cell.arms),
+                                  tmp_path) in s.lines
+    a5 = s.link.messages(LoadChunk)
+    assert {m.robot: m.gcode for m in a5} == texts              # each file to the arm of that id
+    first = cell.arms[0]
+    assert {n: p.start_first for n, p in s.menu.programs.items()} == {
+        a.name: a is first for a in cell.arms}                 # the ;@A1 inside still counts
+    assert "the hub acknowledged the G-code of %s" % ", ".join(a.name for a in cell.arms) in s.lines
+
+
+def test_choice_3_mixes_names_and_ids_and_refuses_both_for_one_arm(cell, sequential, tmp_path):
+    write_job(sequential, str(tmp_path))
+    named, numbered = cell.arms
+    by_robot_id(tmp_path, cell, [numbered.name])
+    s = Session(["3", str(tmp_path), "5"], cell)
+    assert s.run() == EXIT_OK and s.errors == [], s.text
+    assert "loaded %s.gcode, %d.gcode for %s (R%d) from %s" % (named.name, numbered.id, numbered.name,
+                                                               numbered.id, tmp_path) in s.lines
+    assert sorted(m.robot for m in s.link.messages(LoadChunk)) == sorted(a.id for a in cell.arms)
+    # both names for one arm: which is meant is not guessed, nothing is sent
+    shutil.copyfile(tmp_path / ("%d.gcode" % numbered.id), tmp_path / (numbered.name + ".gcode"))
+    s = Session(["3", str(tmp_path), "5"], cell)
+    assert s.run() == EXIT_OK and s.link.sent == []
+    assert s.errors == ["error: %s: both %s.gcode and %d.gcode are there for %s (R%d): which to send is not "
+                        "guessed; remove one" % (tmp_path, numbered.name, numbered.id, numbered.name, numbered.id)]
+
+
+def test_choice_3_takes_the_ids_from_the_cell(cell, tmp_path):
+    """Plain G-code (no directives), as the original's files: with the
+    arms' ids changed in the cell, the files follow the ids."""
+    ids = [a.id + 40 for a in cell.arms]
+    other = replace(cell, arms=tuple(replace(a, id=i) for a, i in zip(cell.arms, ids)))
+    sample = open(data_path("gcode", "sample_square.gcode")).read()
+    for a in cell.arms:                                    # the default cell's ids: not arms of `other`
+        (tmp_path / ("%d.gcode" % a.id)).write_text(sample)
+    s = Session(["3", str(tmp_path), "5"], other)
+    assert s.run() == EXIT_OK and s.link.sent == []
+    assert s.errors == ["error: %s: no program for any arm of cell %s (looked for %s)" % (
+        tmp_path, other.name, ", ".join("%s.gcode or %d.gcode" % (a.name, a.id) for a in other.arms))]
+    for a in other.arms:
+        (tmp_path / ("%d.gcode" % a.id)).write_text(sample.replace("20 x 20 mm", "R%d's" % a.id))
+    s = Session(["3", str(tmp_path), "5"], other)
+    assert s.run() == EXIT_OK and s.errors == [], s.text
+    a5 = s.link.messages(LoadChunk)
+    assert sorted(m.robot for m in a5) == sorted(ids)
+    for m in a5:
+        assert "R%d's" % m.robot in m.gcode
+    assert all(p.start_first for p in s.menu.programs.values())
