@@ -13,12 +13,20 @@ The menu of the original design, same five choices in the same order::
   (:func:`ambots.job.run_job`) and writes ``DIR/<arm>.gcode``, ``<arm>.stl``
   and ``job.json`` (:func:`ambots.job.write_job`; ``DIR`` = ``--out``, else
   ``out/<model stem>``).  The job stays in memory for 3 and 4.
+  1 and 2 slice with the menu's ``slicer``: ``builtin``, ``prusa`` or
+  ``auto`` (:func:`ambots.slicer.choose_backend`: PrusaSlicer where
+  ``prusa-slicer`` is installed, as the original did, else the built-in
+  slicer; the command line's default for the menu), and say which one and
+  why (``slicer: PrusaSlicer 2.5.0 (/usr/bin/prusa-slicer); --slicer auto:
+  prusa-slicer is installed``) before slicing.
 - 3 sends each arm its whole program as one A5 chunk
   (:class:`ambots.protocol.LoadChunk`) through the hub and waits until the
   hub has acknowledged every chunk.  Without a job in memory it asks for a
-  directory written by 2 and loads ``<arm>.gcode`` for every arm of the cell
-  found there (checked: readable G-code, well-formed ``;@`` directives for
-  this cell's arms, no bare A-series line).
+  directory and loads, for every arm of the cell, ``<arm>.gcode`` (as 2
+  writes them) or ``<robot id>.gcode`` (as the original named them, e.g.
+  ``1.gcode``; the ids are the cell's), whichever is there (both: refused)
+  (checked: readable G-code, well-formed ``;@`` directives for this cell's
+  arms, no bare A-series line).
 - 4 sends A1 (:class:`ambots.protocol.Start`) to every arm whose program has
   ``start_first`` (in ``sequential`` mode only the first arm: the arms
   start each other with ``;@A1`` directives), then follows the arms' A10
@@ -65,7 +73,8 @@ from ambots.protocol import (HUB, MAX_U32, Ack, ArmState, ErrorReport, LoadChunk
 from ambots.reliable import Receiver, Sender, seq_seed
 
 __all__ = ["CHOICES", "EXIT_OK", "EXIT_FAILED", "EXIT_BAD_INPUT", "Undelivered", "ReliableLink",
-           "JobTracker", "Menu", "load_programs", "build_parser", "one_line"]
+           "JobTracker", "Menu", "program_file_names", "program_files", "load_programs", "build_parser",
+           "one_line"]
 
 #: the menu, in the original's order
 CHOICES = (
@@ -312,25 +321,50 @@ def _progress_messages(doc, programs):
 _MODE_RE = re.compile(r"^; ambots program for arm .*, mode (\w+)")
 
 
+def program_file_names(arm):
+    """The names a program file of ``arm`` may have: ``<arm name>.gcode``
+    (as :func:`ambots.job.write_job` writes them) and ``<robot id>.gcode``
+    (as the original named them).  Arm names never start with a digit
+    (:func:`ambots.config.load_cell`), so the two never meet."""
+    return arm.name + ".gcode", "%d.gcode" % arm.id
+
+
+def program_files(directory, cell):
+    """{arm name: path} of the program file of each arm of ``cell`` found
+    in ``directory`` under one of :func:`program_file_names`.  Both names
+    for one arm is a :class:`~ambots.errors.GCodeError`: which one to send
+    is not guessed."""
+    if not os.path.isdir(directory):
+        raise GCodeError(directory, 0, "", "no such directory")
+    files = {}
+    for arm in cell.arms:
+        found = [n for n in program_file_names(arm) if os.path.isfile(os.path.join(directory, n))]
+        if len(found) > 1:
+            raise GCodeError(directory, 0, "", "both %s and %s are there for %s: which to send is not "
+                             "guessed; remove one" % (found[0], found[1], _label(arm)))
+        if found:
+            files[arm.name] = os.path.join(directory, found[0])
+    if not files:
+        raise GCodeError(directory, 0, "", "no program for any arm of cell %s (looked for %s)" % (
+            cell.name, ", ".join(" or ".join(program_file_names(a)) for a in cell.arms)))
+    return files
+
+
 def load_programs(directory, cell):
-    """Per-arm programs from ``directory`` (``<arm>.gcode`` for each arm of
-    ``cell`` found there, as written by :func:`ambots.job.write_job`):
-    {arm name: ArmProgram}.  An arm that another program starts with a
-    ``;@A1`` directive is not started by the front end (``start_first``
-    False).  Raises :class:`~ambots.errors.GCodeError` naming the file and
-    line of the first problem."""
+    """Per-arm programs from ``directory`` (the file of each arm of ``cell``
+    found there, see :func:`program_files`): {arm name: ArmProgram}.  An
+    arm that another program starts with a ``;@A1`` directive is not
+    started by the front end (``start_first`` False).  Raises
+    :class:`~ambots.errors.GCodeError` naming the file and line of the
+    first problem."""
     from ambots.coordinate import ArmProgram
     from ambots.gcode import is_a_series_line, parse_gcode_text, summarize
     from ambots.program import is_directive, parse_directive
 
-    if not os.path.isdir(directory):
-        raise GCodeError(directory, 0, "", "no such directory")
     ids = {a.id for a in cell.arms}
     programs, started = {}, set()
-    for arm in cell.arms:
-        path = os.path.join(directory, arm.name + ".gcode")
-        if not os.path.isfile(path):
-            continue
+    for arm_name, path in program_files(directory, cell).items():
+        arm = cell.arm(arm_name)
         try:
             with open(path, "r", encoding="ascii", newline="") as f:
                 text = f.read()
@@ -358,9 +392,6 @@ def load_programs(directory, cell):
                                  "directive lines may carry them)")
         summary = summarize(parse_gcode_text(text, path))      # raises on a bad line
         programs[arm.name] = ArmProgram(arm, mode, lines, layers=summary["layers"])
-    if not programs:
-        raise GCodeError(directory, 0, "", "no program for any arm of cell %s (looked for %s)" % (
-            cell.name, ", ".join(a.name + ".gcode" for a in cell.arms)))
     for p in programs.values():
         p.start_first = p.arm.id not in started
     return programs
@@ -373,8 +404,10 @@ class Menu:
 
     ``link``: see :class:`ReliableLink`.  ``cell``: the loaded cell.
     ``model``: default answer of choice 2 and model of :meth:`print_job`;
-    ``out``: output folder (default ``out/<model stem>``); ``slicer``,
-    ``mode``, ``seam``: as ``python -m ambots slice``.  ``input(prompt)``
+    ``out``: output folder (default ``out/<model stem>``); ``slicer``:
+    ``builtin``, ``prusa`` or ``auto`` (see the module docstring; the
+    command line's default for the menu is ``auto``); ``mode``, ``seam``:
+    as ``python -m ambots slice``.  ``input(prompt)``
     reads an answer (EOFError = end of input), ``output(line)`` and
     ``error(line)`` write one (``error`` defaults to ``output``);
     ``clock()`` (s) times the waits.  ``timeout``: how long choice 4 follows
@@ -494,9 +527,12 @@ class Menu:
         """Run the job pipeline on ``path`` and write the programs; the job
         becomes the current one.  Raises AmbotsError / OSError."""
         from ambots.job import run_job, write_job
-        self.say("slicing %s (cell %s, %s slicer, %s mode) ..." % (path, self.cell.name, self.slicer, self.mode))
+        from ambots.slicer import choose_backend
+        slicer = choose_backend(self.slicer)
+        self.say("slicer: %s; %s" % (slicer.description, slicer.reason))
+        self.say("slicing %s (cell %s, %s slicer, %s mode) ..." % (path, self.cell.name, slicer.backend, self.mode))
         t0 = time.monotonic()
-        job = run_job(path, self.cell, self.arms, slicer=self.slicer, mode=self.mode, seam=self.seam)
+        job = run_job(path, self.cell, self.arms, slicer=slicer.backend, mode=self.mode, seam=self.seam)
         out = self.out or os.path.join("out", os.path.splitext(os.path.basename(path))[0] or "model")
         summary = write_job(job, out)
         self.job, self.programs, self.directory, self.sent = job, dict(job.programs), out, False
@@ -525,12 +561,16 @@ class Menu:
     def send(self, deadline=None):
         """Send every program as one A5 chunk; True once the hub acknowledged them all."""
         if not self.programs:
-            directory = self.ask("directory with the <arm>.gcode programs", self.directory)
+            directory = self.ask("directory with the programs (<arm>.gcode or <robot id>.gcode)", self.directory)
             if not directory:
                 self.complain("no directory given: slice a model first (2)")
                 return False
+            files = program_files(directory, self.cell)
             self.programs, self.directory, self.sent = load_programs(directory, self.cell), directory, False
-            self.say("loaded %s from %s" % (", ".join("%s.gcode" % n for n in self.programs), directory))
+            self.say("loaded %s from %s" % (", ".join(
+                n + ".gcode" if os.path.basename(files[n]) == n + ".gcode"
+                else "%s for %s" % (os.path.basename(files[n]), _label(p.arm))
+                for n, p in self.programs.items()), directory))
         chunk = next(self._chunk_ids) % (MAX_U32 + 1)
         messages = [LoadChunk(p.arm.id, p.text, chunk_id=chunk) for p in self.programs.values()]
         for p, msg in zip(self.programs.values(), messages):      # all checked before any is sent
@@ -690,7 +730,10 @@ def build_parser(prog="front_end"):
     p.add_argument("--model", help="model file, mm: choice 2's default answer, and what --print prints "
                                    "(default for --print: the demo block)")
     p.add_argument("--cell", help="cell YAML (default: config/cells/kinova_ur10.yaml)")
-    p.add_argument("--slicer", choices=("builtin", "prusa"), default="builtin")
+    p.add_argument("--slicer", choices=("auto", "builtin", "prusa"),
+                   help="auto: PrusaSlicer where prusa-slicer is installed (as the original), else the built-in "
+                        "slicer; builtin or prusa: that one, or an error (default: auto in the menu, builtin "
+                        "with --print)")
     p.add_argument("--mode", choices=("concurrent", "sequential"), default="concurrent")
     p.add_argument("--arms", help="comma-separated arms to print with, e.g. ur10 (default: the planner chooses "
                                   "the fastest of the cell's arms together and each arm alone)")
@@ -709,5 +752,8 @@ def build_parser(prog="front_end"):
 def menu_from_args(args, link, cell, **kw):
     """A :class:`Menu` configured by :func:`build_parser`'s ``args``."""
     arms = [cell.arm(n.strip()) for n in args.arms.split(",")] if getattr(args, "arms", None) else None
-    return Menu(link, cell, model=args.model, out=args.out, slicer=args.slicer, mode=args.mode, arms=arms,
+    # the menu slices like the original (PrusaSlicer where installed); a scripted --print job keeps
+    # the same G-code on every machine unless --slicer says otherwise
+    slicer = args.slicer or ("builtin" if args.print_job else "auto")
+    return Menu(link, cell, model=args.model, out=args.out, slicer=slicer, mode=args.mode, arms=arms,
                 timeout=None if args.print_job else args.timeout, **kw)

@@ -6,6 +6,9 @@ and write G-code in the model's own frame: a model placed with
 :func:`ambots.mesh.place_on_bed` keeps its x, y and z, so the G-code of the
 two back ends can be compared (and cut) in one frame.  Millimetres
 throughout: G-code is the mm boundary of the package (:mod:`ambots.units`).
+:func:`choose_backend` says which back end ``auto`` means on this machine
+(``prusa`` where ``prusa-slicer`` is installed, else ``builtin``) and which
+PrusaSlicer version runs.
 
 The built-in pipeline (:meth:`BuiltinSlicer.slice`) is a sequence of steps::
 
@@ -24,6 +27,7 @@ amounts, text formatting); no Python loop runs per point.
 import dataclasses
 import math
 import os
+import re
 import shutil
 import subprocess
 import tempfile
@@ -741,3 +745,60 @@ class PrusaSlicer:
 
 #: back ends by name, for :func:`slice_mesh` and the command line
 BACKENDS = {BuiltinSlicer.name: BuiltinSlicer, PrusaSlicer.name: PrusaSlicer}
+
+
+# ============================================================ which back end
+
+#: what ``auto`` means: the ``prusa`` back end where this program is on PATH, else ``builtin``
+PRUSA_EXECUTABLE = "prusa-slicer"
+_VERSION_RE = re.compile(r"PrusaSlicer-(\S+)")
+_versions = {}          # (path, mtime) -> version, so that a menu asks once per binary
+
+
+def prusa_version(path):
+    """The version of the PrusaSlicer at ``path`` as the first line of its
+    ``--help`` gives it (``PrusaSlicer-2.5.0+UNKNOWN based on Slic3r``:
+    ``"2.5.0+UNKNOWN"``), or ``"version unknown"``."""
+    try:
+        key = (path, os.stat(path).st_mtime_ns)
+    except OSError:
+        return "version unknown"
+    if key not in _versions:
+        try:
+            proc = subprocess.run([path, "--help"], capture_output=True, text=True, timeout=30, check=False)
+            m = _VERSION_RE.search(proc.stdout + proc.stderr)
+            _versions[key] = m.group(1) if m else "version unknown"
+        except (OSError, subprocess.SubprocessError):
+            _versions[key] = "version unknown"
+    return _versions[key]
+
+
+class SlicerChoice(NamedTuple):
+    """The back end a job will use and why (:func:`choose_backend`)."""
+    backend: str        #: a key of :data:`BACKENDS`
+    description: str    #: the slicer in words: "PrusaSlicer 2.5.0 (/usr/bin/prusa-slicer)" or "built-in slicer"
+    reason: str         #: why this one, e.g. "--slicer auto: prusa-slicer is installed"
+
+
+def choose_backend(requested="auto", executable=PRUSA_EXECUTABLE):
+    """The back end for ``requested``: ``"builtin"`` or ``"prusa"`` as
+    asked, or ``"auto"``: ``prusa`` when ``executable`` is found on PATH
+    (:func:`shutil.which`, the lookup the prusa back end itself makes), else
+    ``builtin``.  An explicit ``"prusa"`` without the executable is a
+    :class:`SlicerError` (never a silent change of slicer)."""
+    path = shutil.which(executable) if requested in ("auto", PrusaSlicer.name) else None
+    if requested == "auto":
+        if path is None:
+            return SlicerChoice(BuiltinSlicer.name, "built-in slicer",
+                                "--slicer auto: %s not found on PATH" % executable)
+        return SlicerChoice(PrusaSlicer.name, "PrusaSlicer %s (%s)" % (prusa_version(path), path),
+                            "--slicer auto: %s is installed" % executable)
+    if requested == BuiltinSlicer.name:
+        return SlicerChoice(BuiltinSlicer.name, "built-in slicer", "--slicer builtin")
+    if requested == PrusaSlicer.name:
+        if path is None:
+            raise SlicerError("--slicer prusa: %r not found; install PrusaSlicer (apt install prusa-slicer) "
+                              "or use --slicer builtin or auto" % executable)
+        return SlicerChoice(PrusaSlicer.name, "PrusaSlicer %s (%s)" % (prusa_version(path), path),
+                            "--slicer prusa")
+    raise SlicerError("unknown slicer %r; available: auto, %s" % (requested, ", ".join(sorted(BACKENDS))))

@@ -270,7 +270,7 @@ def test_choice_3_without_a_job_loads_the_programs_of_a_directory(cell, jobs, tm
     write_job(jobs["sequential"], str(tmp_path / "seq"))
     s = Session(["3", str(tmp_path / "seq"), "5"], cell)
     assert s.run() == EXIT_OK and s.errors == []
-    assert s.prompts[1] == "directory with the <arm>.gcode programs: "
+    assert s.prompts[1] == "directory with the programs (<arm>.gcode or <robot id>.gcode): "
     a5 = s.link.messages(LoadChunk)
     for m, arm in zip(a5, ("kinova", "ur10")):
         assert m.gcode == (tmp_path / "seq" / (arm + ".gcode")).read_text()
