@@ -1,4 +1,5 @@
-"""``python -m ambots``: the offline command-line interface (no ROS master)."""
+"""``python -m ambots``: the command-line interface; every command but
+``ctl`` (which talks to a running cell) works offline, without ROS."""
 import argparse
 import importlib
 import sys
@@ -7,7 +8,7 @@ from ambots import __version__
 from ambots.errors import AmbotsError
 
 #: modules of :mod:`ambots.commands`, in the order ``--help`` lists them
-COMMANDS = ("cell", "info", "slice", "plan", "export", "summary")
+COMMANDS = ("cell", "info", "slice", "plan", "export", "summary", "ctl")
 
 
 def build_parser():

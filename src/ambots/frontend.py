@@ -35,7 +35,10 @@ The menu of the original design, same five choices in the same order::
   arm of the job reports ERROR or an A11 (failure: the error text, its
   G-code line number and that line of the arm's program), or the timeout
   (``--timeout``; none in the menu).  In the menu Ctrl-C stops *following*
-  (the arms go on) and returns to the menu.  G-code not sent yet is sent
+  (the arms go on) and returns to the menu; while it follows, a typed line
+  ``p``, ``s`` or ``r`` [arm] pauses (A2, end of line), stops (A12, brakes
+  at once, resumable) or resumes (A6) every arm of the cell or the one named
+  (:mod:`ambots.control`).  G-code not sent yet is sent
   first.
 - 5, end of input (Ctrl-D) or Ctrl-C at the prompt: quit.
 
@@ -417,7 +420,7 @@ class Menu:
     def __init__(self, link, cell, model=None, out=None, slicer="builtin", mode="concurrent",
                  seam="straight", arms=None, input=input, output=functools.partial(print, flush=True),
                  error=None, clock=time.monotonic, timeout=None, ack_timeout=DEFAULT_ACK_TIMEOUT_S,
-                 poll_period=0.1, error_grace=1.0):
+                 poll_period=0.1, error_grace=1.0, typed=None):
         self.link, self.cell = link, cell
         self.model, self.out = model, out
         self.slicer, self.mode, self.seam = slicer, mode, seam
@@ -427,6 +430,9 @@ class Menu:
         self.complain = error or output
         self.clock, self.timeout = clock, timeout
         self.ack_timeout, self.poll_period, self.error_grace = ack_timeout, poll_period, error_grace
+        #: typed() -> the lines typed since the last call, without waiting: the progress
+        #: view's controls (p/r/s [arm]); None: no controls (a scripted --print job)
+        self.typed = typed
         self.job = None
         self.print_times = {}       # arm name -> estimated print time (s) of the sliced job
         self.programs = {}          # arm name -> ArmProgram: what 3 sends and 4 starts
@@ -644,6 +650,9 @@ class Menu:
             deadline = t0 + self.timeout
         self.say("following the print%s (Ctrl-C: back to the menu, the arms go on)" % (
             "" if deadline is None else ", at most %.0f s" % (deadline - t0)))
+        if self.typed is not None:
+            self.say("  type p, s or r and Enter to pause (end of line), stop (brake now) or resume every arm;"
+                     " add an arm's name or id for one arm")
         tracker = JobTracker(self.programs)
         grace_end = None
         seen_progress = None
@@ -658,6 +667,9 @@ class Menu:
             for msg in incoming:
                 for line in tracker.update(msg):
                     self.say(line)
+            if self.typed is not None:
+                for line in self.typed():
+                    self.control(line)
             now = self.clock()
             if tracker.outcome is True:
                 self.say("print finished: every arm is DONE (%s) after %.1f s" % (
@@ -677,6 +689,22 @@ class Menu:
                 return False
             ends = [t - now for t in (deadline, grace_end) if t is not None]
             self.link.wait(min([self.poll_period] + ends))
+
+    def control(self, line):
+        """A line typed in the progress view: pause, stop or resume (see
+        :mod:`ambots.control`), sent through the hub like every command."""
+        from ambots.control import ControlError, parse_key_line
+        try:
+            parsed = parse_key_line(self.cell, line)
+        except ControlError as exc:
+            self.complain("  %s" % exc)
+            return
+        if parsed is None:
+            return
+        action, msgs = parsed
+        for m in msgs:
+            self.link.send(m)
+        self.say("  %s sent to %s" % (action, ", ".join(_label(self.cell.arm_by_id(m.robot)) for m in msgs)))
 
     # --- --follow -------------------------------------------------------------------
 

@@ -1,8 +1,10 @@
 """The A-series protocol: the messages between the hub and the arms.
 
 A1..A7 are the commands of the original design and their strings stay valid
-exactly as they were (``A1 R2``, ``A7 R1 X100 Y50 Z10``, ``A5 R1\\n<G-code>``).
-A8..A11 and the optional words below are what reliable cooperation adds.
+exactly as they were (``A1 R0``, ``A7 R1 X100 Y50 Z10``, ``A5 R0\\n<G-code>``;
+the default cell keeps the original's ids, Kinova 0 and UR10 1).
+A8..A11 and the optional words below are what reliable cooperation adds;
+A12 is the operator's stop.
 One message = one dataclass (``Start``, ``LoadChunk``...);
 :func:`encode` / :func:`decode` convert between them and text, and
 ``decode(encode(m)) == m`` for every valid message ``m``.
@@ -28,7 +30,8 @@ code  words (``[]`` = optional)          meaning
 A1    R                                start arm R
 A2    R                                pause arm R
 A3    R                                send this arm's current position to arm R
-                                       (the reply is an A10 with X Y Z)
+                                       (the reply is an A10 with X Y Z; from an
+                                       arm, the hub returns it to that arm)
 A4    R                                clear arm R's chunk
 A5    R [C L K] LF payload             load the G-code payload into arm R; C chunk
                                        id, L payload length (bytes), K CRC-32 of
@@ -49,6 +52,7 @@ A10   R T L N P [X Y Z] [M]            status of arm R: state T (:class:`ArmStat
                                        the report (barriers release at that time)
 A11   R N "text"                       arm R reports an error at G-code line N
                                        (0 = not tied to a line); text <= 512 chars
+A12   R                                stop arm R at once (brake), resumable by A6
 ====  ===============================  ==============================================
 
 Any command may also carry the header words ``S<sender>``, ``Q<seq>`` and ``B<seq>``
@@ -386,8 +390,22 @@ class ErrorReport(_Message):
                                 % MAX_TEXT)
 
 
+@dataclass(frozen=True)
+class Stop(_Message):
+    """A12: stop arm ``robot`` now -- an operator's stop: it brakes at once
+    (the acceleration limits allow, along its path, to the first waypoint it
+    can rest on; a pause, A2, goes on to the end of the G-code line) and is
+    then PAUSED, so A6 resumes the job from there."""
+    robot: int
+    sender: Optional[int] = None
+    seq: Optional[int] = None
+    after: Optional[int] = None
+    CODE: ClassVar[int] = 12
+    WORDS: ClassVar[Tuple] = (("R", "robot", _ROBOT),) + _HEADER
+
+
 COMMANDS = {cls.CODE: cls for cls in (Start, Pause, SendPosition, ClearChunk, LoadChunk, Resume,
-                                      MoveTo, Ack, WaitFor, Status, ErrorReport)}
+                                      MoveTo, Ack, WaitFor, Status, ErrorReport, Stop)}
 
 
 def _payload_problem(gcode):

@@ -45,7 +45,7 @@ import numpy as np
 from ambots.errors import GCodeError
 from ambots.motion import Directive, MotionError, MotionPlanner, Pause as Dwell, read_program
 from ambots.protocol import (Ack, ArmState, ClearChunk, ErrorReport, LoadChunk, MoveTo, Pause, Resume,
-                             SendPosition, Start, Status, WaitFor, MAX_TEXT, decode, encode)
+                             SendPosition, Start, Status, Stop, WaitFor, MAX_TEXT, decode, encode)
 
 __all__ = ["ArmRunner", "Bead", "RunStats"]
 
@@ -144,6 +144,8 @@ class ArmRunner:
         self.layer = 0
         self.wait = None             #: the WaitFor being waited on
         self.pause_requested = False
+        #: the pause requested is an operator's stop (A12): rest on the first waypoint reachable
+        self.stop_requested = False
         self.after_block = None      #: state after a manual (A7) move
         self.reported_line = -1
         self._ahead = {}             #: item index -> (start joints, block) planned ahead
@@ -264,6 +266,14 @@ class ArmRunner:
             elif self.state is ArmState.WAITING:
                 self.state = ArmState.PAUSED
                 self._report()
+        elif kind is Stop:
+            if self.state is ArmState.PRINTING:
+                self.pause_requested = self.stop_requested = True
+                self.pause_at = None
+                self._brake(now)
+            elif self.state is ArmState.WAITING:
+                self.state = ArmState.PAUSED
+                self._report()
         elif kind is Resume:
             if self.state is ArmState.PAUSED:
                 self._resume(now)
@@ -280,7 +290,8 @@ class ArmRunner:
     def _brake(self, now):
         """A pause while moving: brake within the acceleration limits to rest
         on the first waypoint ending a G-code line that the arm can reach so
-        (:func:`ambots.trajectory.stop_at_line_end`, the one timing law);
+        (:func:`ambots.trajectory.stop_at_line_end`, the one timing law; a
+        stop, A12: on the first waypoint it can reach);
         the block's times after ``now`` change accordingly.  A driver that
         streams the motion (:attr:`on_motion`) plans the stop itself, after
         what it has sent (:attr:`pause_at`)."""
@@ -289,10 +300,11 @@ class ArmRunner:
             return
         from ambots.trajectory import stop_at_line_end
         H = max(now, self.clock) - self.block_t0
-        self.pause_at = (b, stop_at_line_end(b, max(H, float(b.t[self.k])), self.planner.timing))
+        self.pause_at = (b, stop_at_line_end(b, max(H, float(b.t[self.k])), self.planner.timing,
+                                             line_ends_only=not self.stop_requested))
 
     def _resume(self, now):
-        self.pause_requested = False
+        self.pause_requested = self.stop_requested = False
         self.state = ArmState.WAITING if self.wait is not None else ArmState.PRINTING
         if self.block is not None:       # continue the block where it stopped
             self.block_t0 = now - self.block.t[self.k]
@@ -354,7 +366,8 @@ class ArmRunner:
             "state": self.state.name, "clock": self.clock, "idx": self.idx, "q": self.q.tolist(),
             "done_line": int(self.done_line), "layer": int(self.layer),
             "wait": encode(self.wait) if self.wait is not None else None,
-            "pause_requested": self.pause_requested, "reported_line": int(self.reported_line),
+            "pause_requested": self.pause_requested, "stop_requested": self.stop_requested,
+            "reported_line": int(self.reported_line),
             "peers": {str(i): encode(st) for i, st in self.peers.items() if st is not None},
             "peer_time": {str(i): t for i, t in self.peer_time.items()},
             "peer_log": {str(i): [list(e) for e in log] for i, log in self.peer_log.items()},
@@ -377,6 +390,7 @@ class ArmRunner:
         self.done_line, self.layer = int(cp["done_line"]), int(cp["layer"])
         self.wait = decode(cp["wait"]) if cp["wait"] else None
         self.pause_requested, self.reported_line = bool(cp["pause_requested"]), int(cp["reported_line"])
+        self.stop_requested = bool(cp.get("stop_requested", False))
         self.peers = {int(i): decode(t) for i, t in cp["peers"].items()}
         self.peer_time = {int(i): float(t) for i, t in cp["peer_time"].items()}
         self.peer_log = {int(i): deque([tuple(e) for e in log], maxlen=256)
@@ -467,7 +481,7 @@ class ArmRunner:
     def _next_block(self):
         """Take the next item.  Returns True if a block is ready to run."""
         if self.pause_requested:          # between two items is a clean point
-            self.pause_requested = False
+            self.pause_requested = self.stop_requested = False
             self.state = ArmState.PAUSED
             self._report()
             return False
@@ -580,7 +594,7 @@ class ArmRunner:
             self._execute(b, self.k, kk)
             self.k = kk
         if stop:
-            self.pause_requested = False
+            self.pause_requested = self.stop_requested = False
             self.pause_at = None
             self.clock = self.block_t0 + b.t[self.k]
             if self.k == K - 1:
@@ -612,6 +626,8 @@ class ArmRunner:
         :attr:`pause_at` if set for it, else the end of the line being executed."""
         if self.pause_at is not None and self.pause_at[0] is b and self.pause_at[1] > self.k:
             return int(self.pause_at[1])
+        if self.stop_requested:
+            return min(self.k + 1, len(b.t) - 1)
         ends = np.nonzero(b.line_end[self.k + 1:])[0]
         return self.k + 1 + int(ends[0]) if len(ends) else len(b.t) - 1
 

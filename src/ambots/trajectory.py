@@ -640,12 +640,13 @@ def _brake_piece(p, H, tau_b, c, freeze_e=False):
     return _Piece(H, max(end, H), p.spline, p.shift, t_b, tau_b, c if math.isfinite(c) else None, freeze_e)
 
 
-def stop_at_line_end(block, H, timing):
+def stop_at_line_end(block, H, timing, line_ends_only=True):
     """Brake ``block`` (timed by :class:`SplineTiming`) to rest at the first
     waypoint ending a G-code line (or the block's end) at block time >= ``H``
     (the motion up to ``H`` is committed) that it can reach within the
     acceleration limits of ``timing`` (the :class:`SplineTiming` that timed
-    it).  Changes ``block.t`` after ``H`` and ``block.motion``: braking to
+    it); with ``line_ends_only`` False (an operator's stop, A12) at the
+    first waypoint it can reach, wherever it is on its line.  Changes ``block.t`` after ``H`` and ``block.motion``: braking to
     that waypoint, the rest of the block re-timed from rest.  Returns the
     waypoint's index (the runner pauses there)."""
     amax = timing.amax
@@ -661,7 +662,7 @@ def stop_at_line_end(block, H, timing):
     last = int(sp.idx[-1])
     for u, j in enumerate(sp.idx):
         j = int(j)
-        if block.t[j] < H - TIME_EPS or not (block.line_end[j] or j == last):
+        if block.t[j] < H - TIME_EPS or (line_ends_only and not (block.line_end[j] or j == last)):
             continue
         if j == last:
             return j                              # the block ends at rest anyway
@@ -839,13 +840,15 @@ class Stream:
         return max(now - t0, float(block.t[0]))
 
     def pause(self, runner, now, timing):
-        """The runner was asked to pause while moving: plan its stop after
-        what is committed; returns the waypoint to pause at (for
-        ``runner.pause_at``) or None when there is nothing to brake."""
+        """The runner was asked to pause (or stop: ``runner.stop_requested``)
+        while moving: plan its stop after what is committed; returns the
+        waypoint to pause at (for ``runner.pause_at``) or None when there is
+        nothing to brake."""
         b = runner.block
         if b is None or getattr(b, "motion", None) is None:
             return None
-        j = stop_at_line_end(b, self.horizon(b, runner.block_t0, now), timing)
+        j = stop_at_line_end(b, self.horizon(b, runner.block_t0, now), timing,
+                             line_ends_only=not runner.stop_requested)
         seg = self.cur
         if seg is not None and seg.block is b:          # the stretch now ends at the stop
             seg.end = b.motion.rest_after(seg.tau0)

@@ -59,12 +59,15 @@ def small_model(path):
 
 
 def run_print(tmp, port, model, faults="", kill_after=None, slowdown="1.0", seed=0, timeout=600,
-              kill_hub_after=None, replace_front_end_after=None):
+              kill_hub_after=None, replace_front_end_after=None, during=None):
     """One print (see the module docstring).  ``kill_after``: wall seconds
     after the first motion at which the Kinova's firmware is killed with
     SIGKILL (None: no kill); ``kill_hub_after``: the same for the hub;
     ``replace_front_end_after``: the front end is killed then, and a new
-    one (``--follow``) follows the job to its end."""
+    one (``--follow``) follows the job to its end.  ``during(env, state)``:
+    called once the Kinova has laid its first bead (``env``: the
+    environment of this ROS master; ``state``: the nodes' state directory);
+    what it returns is the result's ``"during"``."""
     tmp = str(tmp)
     os.makedirs(tmp, exist_ok=True)
     env = dict(os.environ, ROS_MASTER_URI="http://localhost:%d" % port, ROS_HOME=os.path.join(tmp, "ros_home"))
@@ -88,6 +91,10 @@ def run_print(tmp, port, model, faults="", kill_after=None, slowdown="1.0", seed
                               stdout=logs["front_end"], stderr=subprocess.STDOUT, env=env)
         events = sorted((t, what) for t, what in ((kill_after, "kinova"), (kill_hub_after, "hub"),
                                                   (replace_front_end_after, "front_end")) if t is not None)
+        during_result = None
+        if during is not None:
+            _wait_for_beads(state, fe)
+            during_result = during(env, state)
         if events:
             _wait_for_beads(state, fe)
             t0 = time.monotonic()
@@ -121,7 +128,8 @@ def run_print(tmp, port, model, faults="", kill_after=None, slowdown="1.0", seed
         store = StateStore(state, arm)
         cp = store.load()
         journals[arm] = store.read_journal(cp["records"] if cp else None)
-    return {"front_end_rc": rc, "report": report, "journals": journals, "kills": kills, "tmp": tmp}
+    return {"front_end_rc": rc, "report": report, "journals": journals, "kills": kills, "tmp": tmp,
+            "during": during_result}
 
 
 def start_cell(port, env, log, *args):

@@ -8,7 +8,9 @@ with the same deposit (per arm: same beads in the same order under faults;
 per G-code line the same filament and bead length after a kill), and no
 contact in the executed motion."""
 import os
+import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -132,4 +134,52 @@ def test_the_demo_print_under_faults_is_the_clean_demo(tmp_path_factory):
     rep = run["report"]
     assert rep["finished"] and rep["collisions"] == NO_CONTACT, rep
     assert rep["hub_progress"]["faults"]["in"]["dropped"] > 50, rep["hub_progress"]["faults"]
+    _check_deposit(clean, run)
+
+
+def _ctl(env, *args):
+    """``python -m ambots ctl args...`` on this print's master: (exit status, output)."""
+    r = subprocess.run([sys.executable, "-m", "ambots", "ctl", *args], capture_output=True, text=True,
+                       env=env, timeout=120)
+    return r.returncode, r.stdout + r.stderr
+
+
+def _journal_sizes(state):
+    return {arm: os.path.getsize(os.path.join(state, arm + ".beads")) if os.path.exists(
+        os.path.join(state, arm + ".beads")) else 0 for arm in ("kinova", "ur10")}
+
+
+def test_an_operator_stops_pauses_and_resumes_a_live_print(tmp_path, model, clean):
+    """Issue "Original users": `python -m ambots ctl` during a live
+    concurrent print.  The Kinova is stopped (it brakes at once; the UR10
+    goes on, and waits at its barriers for the stopped arm), then every arm
+    is paused; nothing is laid while they are paused; a caller the hub does
+    not list is refused; resume finishes the job with the uninterrupted
+    run's deposit and no contact."""
+    def operate(env, state):
+        steps = {"stop": _ctl(env, "stop", "kinova"), "pause": _ctl(env, "pause")}
+        before = _journal_sizes(state)
+        time.sleep(2.0)
+        steps["still"] = (before, _journal_sizes(state))
+        steps["intruder"] = _ctl(env, "resume", "--node-name", "/intruder", "--timeout", "3")
+        steps["resume"] = _ctl(env, "resume")
+        return steps
+
+    run = run_print(tmp_path, 11618, model, during=operate)
+    steps = run["during"]
+    rc, out = steps["stop"]
+    assert rc == 0 and "A12 R0 sent to kinova (R0)" in out and "kinova PAUSED" in out, out
+    rc, out = steps["pause"]
+    assert rc == 0 and "A2 R0 A2 R1 sent" in out and "kinova PAUSED" in out, out
+    assert "ur10 PAUSED" in out or "ur10 DONE" in out, out
+    before, after = steps["still"]
+    assert before == after                                  # paused: nothing laid
+    rc, out = steps["intruder"]
+    assert rc == 1 and "/intruder is not a registered node" in out, out
+    rc, out = steps["resume"]
+    assert rc == 0 and "A6 R0 A6 R1 sent" in out, out
+    assert run["front_end_rc"] == 0, run["tmp"]
+    rep = run["report"]
+    assert rep["finished"] and rep["collisions"] == NO_CONTACT, rep
+    assert rep["live_collisions"] == NO_CONTACT, rep
     _check_deposit(clean, run)

@@ -445,3 +445,25 @@ def test_the_checks_catch_a_chooser_and_a_link_loop(tmp_path):
     assert not found_twice(["/usr/lib/rviz/rviz", "/usr/share/rviz/rviz"])
     assert placeholders("roslaunch ambots both_arms.launch [cell:=\u2026]")
     assert not placeholders("roslaunch ambots both_arms.launch speed:=10 rviz:=true")
+
+
+with open(README) as _f:
+    CTL = [c for _, c in ((n, command_of(line)) for n, line in code_lines(_f.read()))
+           if c.startswith("python -m ambots ctl")]
+
+
+def test_the_readme_shows_the_ctl_tool():
+    assert "python -m ambots ctl pause" in CTL and "python -m ambots ctl resume" in CTL, CTL
+
+
+@pytest.mark.parametrize("command", CTL)
+def test_ctl_line_runs_against_the_running_cell(command, tmp_path, running_cell):
+    """`python -m ambots ctl ...` with `both_arms.launch` running (idle arms
+    have nothing to obey: the tool says so and exits 0; a live print is
+    paused, stopped and resumed in test_faults.py)."""
+    run = Run(command, running_cell, str(tmp_path / "ctl.log"))
+    status = run.wait(60)
+    out = run.output
+    assert status == 0, out[-3000:]
+    assert " sent to kinova (R0), ur10 (R1)" in out and "kinova IDLE; ur10 IDLE" in out, out[-3000:]
+    assert not problems(out), (problems(out), out[-3000:])

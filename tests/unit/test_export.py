@@ -32,7 +32,7 @@ UR10 = HEADER + [
     "G0 X100 Y-20 Z0.2 F9000",        # 6: first travel: a joint move
     "G1 X140 Y-20 E1.5 F1200",        # 7
     "G1 X140 Y20 E1.5",               # 8
-    ";@A9 R2 W1 N13",                 # 9: wait until the Kinova has done its line 13
+    ";@A9 R1 W0 N13",                 # 9: wait until the Kinova has done its line 13
     "G1 X100 Y20 E1.5",               # 10
     "G1 E-0.8 F2100",                 # 11: retraction (no motion)
     "G0 Z0.6 F9000",                  # 12
@@ -278,7 +278,7 @@ def test_urscript_refuses_a_job_of_several_arms_open_loop(plan, tmp_path, capsys
 
 
 def test_urscript_refuses_a_kinova_arm_naming_it(plan, capsys):
-    with pytest.raises(ExportError, match=r"arm kinova \(R1\).*Kinova.*not a Universal Robots arm"):
+    with pytest.raises(ExportError, match=r"arm kinova \(R0\).*Kinova.*not a Universal Robots arm"):
         export_plan(str(plan[0]), "urscript")
     with pytest.raises(ExportError, match="kinova"):
         export_plan(str(plan[0]), "urscript", arms="kinova")

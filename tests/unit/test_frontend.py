@@ -3,10 +3,11 @@
 The menu talks through :class:`FakeLink`: a real ReliableLink whose far side
 is an in-memory stand-in for the hub that records every A-series string the
 front end transmits, acknowledges its numbered messages as the hub does
-(``A8 R1000 Q<q> S0``) and, after an A1, feeds scripted A10/A11 replies as
-the hub forwards them (``S0`` and the hub's own numbering).  Time is fake:
+(``A8 R1000 Q<q> S1001``) and, after an A1, feeds scripted A10/A11 replies as
+the hub forwards them (``S1001`` and the hub's own numbering).  Time is fake:
 a wait with nothing to deliver lets the clock run.
-The default cell: kinova = R1, ur10 = R2."""
+The default cell renumbered (fixture ``cell``): kinova = R1, ur10 = R2."""
+import dataclasses
 import itertools
 import json
 import os
@@ -103,7 +104,11 @@ class Session:
 
 @pytest.fixture(scope="module")
 def cell():
-    return load_cell(default_cell_path())
+    """The default cell with robot ids 1 and 2 (its own are the original's 0
+    and 1): the menu takes every id from the cell, and the ids written below
+    are these."""
+    base = load_cell(default_cell_path())
+    return dataclasses.replace(base, arms=tuple(dataclasses.replace(a, id=a.id + 1) for a in base.arms))
 
 
 @pytest.fixture(scope="module")
@@ -312,10 +317,29 @@ def test_choice_4_starts_every_arm_in_concurrent_mode_and_completes_when_all_are
     progress = [l for l in s.lines if l.startswith("  kinova (R1):") and " layer " in l]
     assert len(progress) == 3 and "PRINTING" in progress[1] and "45.0 %" in progress[1]
     assert "DONE" in progress[2]
-    # the front end acknowledged every status the hub forwarded (A8 R0 Q<hub's q> S1000)
+    # the front end acknowledged every status the hub forwarded (A8 R1001 Q<hub's q> S1000)
     acks = link.messages(Ack)
-    assert [(a.robot, a.sender) for a in acks] == [(0, FE)] * 5
+    assert [(a.robot, a.sender) for a in acks] == [(topics.HUB_ID, FE)] * 5
     assert sorted(a.acked_seq for a in acks) == list(range(HUB_FIRST_Q, HUB_FIRST_Q + 5))
+
+
+def test_the_progress_view_pauses_stops_and_resumes_arms_typed_by_the_operator(cell, jobs):
+    """While choice 4 follows the print, typed lines send A2 / A12 / A6
+    through the hub (numbered like every command of the front end)."""
+    job = jobs["concurrent"]
+    typed = [["p"], [], ["s ur10", "x"], ["r 1", "r"], []]
+    link = FakeLink(replies={1: [status(1, 1), status(1, 1, 40, 2000, 45.0)], 2: [status(2, 1)]})
+    s = with_job(Session(["4", "5"], cell, link=link, timeout=30.0,
+                         typed=lambda: typed.pop(0) if typed else []), job)
+    s.run()
+    sent = [m for m in link.messages() if not isinstance(m, (LoadChunk, Start))]
+    assert [(type(m).__name__, m.robot) for m in sent] == [
+        ("Pause", 1), ("Pause", 2), ("Stop", 2), ("Resume", 1), ("Resume", 1), ("Resume", 2)]
+    assert all(m.sender == FE and m.seq is not None for m in sent)
+    assert "  pause sent to kinova (R1), ur10 (R2)" in s.lines
+    assert "  stop sent to ur10 (R2)" in s.lines
+    assert any("'x': type p, r or s" in e for e in s.errors)
+    assert any(l.startswith("  type p, s or r and Enter") for l in s.lines)
 
 
 def test_choice_4_in_sequential_mode_starts_only_the_first_arm(cell, jobs):
@@ -450,8 +474,8 @@ def test_link_numbers_retries_until_acked_and_gives_up():
         now[0] = t
         link.tick()
     assert sent.count("A1 R2 S1000 Q41") == 3 and link.pending() == 2
-    link.receive_text("A8 R1000 Q41 S0")    # the hub's ack
-    link.receive_text("A8 R7 Q42 S0")       # not for us
+    link.receive_text("A8 R1000 Q41 S1001")    # the hub's ack
+    link.receive_text("A8 R7 Q42 S1001")       # not for us
     assert link.pending() == 1
     now[0] = 10.0
     link.tick()
@@ -462,14 +486,14 @@ def test_link_numbers_retries_until_acked_and_gives_up():
 def test_link_acknowledges_forwarded_reports_and_drops_duplicates():
     sent = []
     link = ReliableLink(sent.append, first_seq=1)
-    text = "A10 R1 T1 L2 N30 P4.5 S0 Q9"
+    text = "A10 R1 T1 L2 N30 P4.5 S1001 Q9"
     link.receive_text(text)
     link.receive_text(text)                  # a retry by the hub: acked again, delivered once
-    link.receive_text('A11 R2 N5 S0 Q10 "jam"')
-    link.receive_text("A10 R1 T9 L0 N0 P0 S0 Q11")   # malformed: not acknowledged
-    assert sent == ["A8 R0 Q9 S1000", "A8 R0 Q9 S1000", "A8 R0 Q10 S1000"]
-    assert link.poll() == [Status(1, ArmState.PRINTING, 2, 30, 4.5, sender=0, seq=9),
-                           ErrorReport(2, 5, "jam", sender=0, seq=10)]
+    link.receive_text('A11 R2 N5 S1001 Q10 "jam"')
+    link.receive_text("A10 R1 T9 L0 N0 P0 S1001 Q11")   # malformed: not acknowledged
+    assert sent == ["A8 R1001 Q9 S1000", "A8 R1001 Q9 S1000", "A8 R1001 Q10 S1000"]
+    assert link.poll() == [Status(1, ArmState.PRINTING, 2, 30, 4.5, sender=1001, seq=9),
+                           ErrorReport(2, 5, "jam", sender=1001, seq=10)]
     assert link.poll() == [] and len(link.malformed) == 1
 
 

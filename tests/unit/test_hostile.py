@@ -82,7 +82,7 @@ BAD_STRINGS = [
     ("missing fields", "A10 R1 T1", "A10 needs L, N, P"),
     ("missing W", "A9 R1 L3", "A9 needs W"),
     ("negative id", "A1 R-1", "expected a robot id"),
-    ("zero id", "A1 R0", "expected a robot id"),
+    ("id of the front end", "A1 R1000", "expected a robot id 0..999"),
     ("id beyond int32", "A1 R2147483648", "expected a robot id"),
     ("huge id", "A1 R" + "9" * 40, "expected a robot id"),
     ("NaN coordinate", "A7 R1 Xnan Y0 Z0", "plain decimal"),
@@ -358,7 +358,7 @@ UNREACHABLE = [
     ("1e6 mm back and forth x200", "G1 X1000000 Y0\nG1 X-1000000 Y0\n" * 200, 5),
     ("far travel first", "G0 X-999999 Y0 Z5\nG1 X999999 Y0 E1\n", 5),
     ("arc out of reach", "G2 X0 Y0 I400 J0 F3000\n", 5),
-    ("directive move out of reach", ";@A7 R1 X1000000 Y0 Z0\n", 5),
+    ("directive move out of reach", ";@A7 R0 X1000000 Y0 Z0\n", 5),
     ("unreachable on line 6", "G1 X10 Y0\nG1 X2000 Y0\n", 6),
 ]
 
@@ -608,7 +608,7 @@ BAD_CELLS = [
     ("missing name", _pop("name"), "name", "missing field"),
     ("id as text", _set("arms", 0, "id", "1"), "arms[0].id", "expected an integer"),
     ("id as float", _set("arms", 0, "id", 1.0), "arms[0].id", "expected an integer"),
-    ("id beyond the protocol", _set("arms", 0, "id", 2 ** 40), "arms[0].id", "1..2147483647"),
+    ("id beyond the protocol", _set("arms", 0, "id", 2 ** 40), "arms[0].id", "0..999"),
     ("duplicate name", _set("arms", 1, "name", "kinova"), "arms[1].name", "duplicate arm name 'kinova'"),
     ("same base", _set("arms", 1, "base", "xyz", [0.0, 0.0, 0.0]), "arms",
      "bases of 'kinova' and 'ur10' overlap: 0.000 m apart (minimum 0.25 m)"),

@@ -34,7 +34,7 @@ def test_slice_writes_one_program_and_part_per_arm(tmp_path, cube_stl, slicer, m
     out = tmp_path / "out"
     r = slice_cli(cube_stl, "--slicer", slicer, "--mode", mode, "--out", str(out), "--arms", "kinova,ur10")
     assert r.returncode == 0, r.stderr
-    assert "kinova   R1" in r.stdout and "ur10     R2" in r.stdout
+    assert "kinova   R0" in r.stdout and "ur10     R1" in r.stdout
     summary = json.loads((out / "job.json").read_text())
     assert summary["mode"] == mode and summary["slicer"] == slicer
     vols = []

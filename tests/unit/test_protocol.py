@@ -92,7 +92,7 @@ def test_text_cannot_smuggle_a_command():
 
 @pytest.mark.parametrize("text, why", [
     ("", "empty"), ("   ", "empty"), ("G1 X1", "starts with A"), ("A", "starts with A"),
-    ("A0 R1", "unknown command"), ("A12 R1", "unknown command"), ("A1R2", "starts with A"),
+    ("A0 R1", "unknown command"), ("A13 R1", "unknown command"), ("A1R2", "starts with A"),
     ("A1", "needs R"), ("A1 R1000", "robot id 0..999"), ("A1 R-1", "robot id"), ("A1 R1.5", "robot id"),
     ("A1 R99999999999", "robot id"), ("A1 R2 R3", "twice"), ("A1 R2 X1", "does not take"),
     ("A1 R2\nA2 R3", "after the newline"), ("A1 R2 Q-1", "integer"), ("A1 R2 Q4294967296", "integer"),

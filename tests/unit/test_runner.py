@@ -10,12 +10,12 @@ from ambots.config import default_cell_path, load_cell
 from ambots.gcode import Segment, parse_gcode_text
 from ambots.motion import MotionPlanner
 from ambots.protocol import (ArmState, ClearChunk, ErrorReport, LoadChunk, Pause, Resume, SendPosition, Start,
-                             Status, WaitFor)
+                             Status, Stop, WaitFor)
 from ambots.runner import ArmRunner
 
 MM = 1e-3
 
-# arm R1 (the Kinova); lines 1-based
+# arm R0 (the Kinova); lines 1-based
 PROGRAM = """\
 G21
 G90
@@ -354,7 +354,7 @@ def test_clear_chunk_stops_the_arm(arm, cell, planner):
 # ------------------------------------------------------------ barriers
 def with_barrier(n):
     lines = PROGRAM.split("\n")
-    lines.insert(BARRIER_LINE - 1, ";@A9 R1 W2 N%d" % n)
+    lines.insert(BARRIER_LINE - 1, ";@A9 R0 W1 N%d" % n)
     return "\n".join(lines)
 
 
@@ -362,7 +362,7 @@ def test_barrier_waits_for_the_other_arms_line_and_resumes_at_its_report(arm, ce
     text = with_barrier(40)
     # the same program with the barrier already satisfied: no wait
     free = new_runner(arm, cell, planner)
-    free.handle(Status(2, ArmState.PRINTING, 0, 40, 50.0), now=0.0)
+    free.handle(Status(1, ArmState.PRINTING, 0, 40, 50.0), now=0.0)
     load_and_start(free, text)
     run(free)
     assert free.state is ArmState.DONE and free.stats.idle_time_s == 0.0
@@ -380,12 +380,12 @@ def test_barrier_waits_for_the_other_arms_line_and_resumes_at_its_report(arm, ce
     r.advance(200.0)
     assert r.state is ArmState.WAITING and r.clock == t_wait and len(r.beads) == n_beads
     # a report of an earlier line, or about itself, does not release it
-    r.handle(Status(2, ArmState.PRINTING, 0, 39, 40.0), now=150.0)
-    r.handle(Status(1, ArmState.DONE, 5, 99, 100.0), now=150.0)
+    r.handle(Status(1, ArmState.PRINTING, 0, 39, 40.0), now=150.0)
+    r.handle(Status(0, ArmState.DONE, 5, 99, 100.0), now=150.0)
     r.advance(250.0)
     assert r.state is ArmState.WAITING and len(r.beads) == n_beads
     # line 40 reported at t = 260 (the arm's clock is already at 300)
-    r.handle(Status(2, ArmState.PRINTING, 0, 40, 41.0), now=260.0)
+    r.handle(Status(1, ArmState.PRINTING, 0, 40, 41.0), now=260.0)
     r.advance(300.0)
     assert r.state is not ArmState.WAITING
     run(r)
@@ -408,7 +408,7 @@ def test_barrier_released_by_the_other_arm_done(arm, cell, planner):
     load_and_start(r, with_barrier(10 ** 6))
     run(r, t_max=100.0)
     assert r.state is ArmState.WAITING
-    r.handle(Status(2, ArmState.DONE, 3, 12, 100.0), now=r.clock + 1.0)
+    r.handle(Status(1, ArmState.DONE, 3, 12, 100.0), now=r.clock + 1.0)
     r.advance(r.clock + 2.0)
     run(r)
     assert r.state is ArmState.DONE
@@ -423,7 +423,7 @@ def test_pause_while_waiting_then_resume_keeps_waiting(arm, cell, planner):
     assert r.state is ArmState.PAUSED and messages(r, Status)[-1].state is ArmState.PAUSED
     r.handle(Resume(r.id))
     assert r.state is ArmState.WAITING
-    r.handle(Status(2, ArmState.PRINTING, 0, 40, 41.0), now=r.clock + 1.0)
+    r.handle(Status(1, ArmState.PRINTING, 0, 40, 41.0), now=r.clock + 1.0)
     r.advance(r.clock + 2.0)
     run(r)
     assert r.state is ArmState.DONE
@@ -432,9 +432,9 @@ def test_pause_while_waiting_then_resume_keeps_waiting(arm, cell, planner):
 def test_a9_command_makes_an_idle_arm_wait(arm, cell, planner):
     r = new_runner(arm, cell, planner)
     r.handle(LoadChunk(r.id, PROGRAM, chunk_id=1))
-    r.handle(WaitFor(r.id, 2, layer=1))
+    r.handle(WaitFor(r.id, 1, layer=1))
     assert r.state is ArmState.WAITING
-    r.handle(Status(2, ArmState.PRINTING, 1, 30, 50.0), now=4.0)
+    r.handle(Status(1, ArmState.PRINTING, 1, 30, 50.0), now=4.0)
     r.advance(5.0)
     assert r.state is not ArmState.WAITING
 
@@ -455,7 +455,7 @@ def test_send_position_reports_the_nozzle(arm, cell, planner):
     run(ref)
     load_and_start(r)
     r.advance(0.6 * ref.stats.done_s)
-    r.handle(SendPosition(2))                  # A3 R2 reaching this arm: report for arm 2
+    r.handle(SendPosition(1))                  # A3 R1 reaching this arm: report for arm 1
     st = messages(r, Status)[-1]
     np.testing.assert_allclose(st.position, r.nozzle_mm(), atol=1e-3)
     assert st.state is ArmState.PRINTING and st.line == r.done_line
@@ -486,16 +486,16 @@ def test_an_arm_waiting_for_a_failed_arm_holds_and_says_why(cell):
     from ambots.protocol import ArmState, ErrorReport, LoadChunk, Start, Status
     from ambots.runner import ArmRunner
     arm = cell.arm("kinova")
-    text = "G21\nG90\nM83\nG0 X0 Y0 Z5 F3000\n;@A9 R1 W2 N50\nG0 X5 Y0 Z5\n"
+    text = "G21\nG90\nM83\nG0 X0 Y0 Z5 F3000\n;@A9 R0 W1 N50\nG0 X5 Y0 Z5\n"
     r = ArmRunner(arm, cell)
     r.handle(LoadChunk(arm.id, text, chunk_id=1))
     r.handle(Start(arm.id))
     r.advance(100.0)
     assert r.state is ArmState.WAITING
-    r.handle(Status(2, ArmState.ERROR, 0, 10, 5.0), now=100.0)
+    r.handle(Status(1, ArmState.ERROR, 0, 10, 5.0), now=100.0)
     assert r.state is ArmState.PAUSED
     errors = [m for _, m in r.outbox if isinstance(m, ErrorReport)]
-    assert errors and "R2" in errors[-1].message and errors[-1].line == 5
+    assert errors and "R1" in errors[-1].message and errors[-1].line == 5
 
 
 def test_planning_ahead_while_waiting_gives_the_same_motion(arm, cell, planner):
@@ -522,13 +522,13 @@ def test_planning_ahead_while_waiting_gives_the_same_motion(arm, cell, planner):
     while r.prefetch():
         pass
     assert len(calls) > n_before               # the moves after the barrier are planned now
-    r.handle(Status(2, ArmState.PRINTING, 0, 40, 41.0), now=r.clock)
+    r.handle(Status(1, ArmState.PRINTING, 0, 40, 41.0), now=r.clock)
     r.advance(r.clock)
     run(r)
     assert r.state is ArmState.DONE
     assert len(calls) == len(set(calls))       # ... and not again when the arm gets there
     free = new_runner(arm, cell, planner)      # the same program, the barrier satisfied from the start
-    free.handle(Status(2, ArmState.PRINTING, 0, 40, 50.0), now=0.0)
+    free.handle(Status(1, ArmState.PRINTING, 0, 40, 50.0), now=0.0)
     load_and_start(free, with_barrier(40))
     run(free)
     same_beads(r, free)
@@ -581,9 +581,9 @@ def test_a_report_overtaken_by_a_newer_one_is_ignored(arm, cell, planner):
     load_and_start(r, with_barrier(40))
     run(r, t_max=100.0)
     assert r.state is ArmState.WAITING
-    r.handle(Status(2, ArmState.PRINTING, 0, 41, 50.0, clock=30.0), now=r.clock)
-    r.handle(Status(2, ArmState.PRINTING, 0, 12, 10.0, clock=5.0), now=r.clock)     # late, older
-    assert r.peers[2].line == 41
+    r.handle(Status(1, ArmState.PRINTING, 0, 41, 50.0, clock=30.0), now=r.clock)
+    r.handle(Status(1, ArmState.PRINTING, 0, 12, 10.0, clock=5.0), now=r.clock)     # late, older
+    assert r.peers[1].line == 41
     r.advance(r.clock + 40.0)
     assert r.state is not ArmState.WAITING
 
@@ -597,14 +597,14 @@ def test_a_barrier_already_satisfied_by_a_later_report_holds_the_arm_until_then(
     text = with_barrier(40)
     free = new_runner(arm, cell, planner)
     load_and_start(free, text)
-    free.handle(Status(2, ArmState.PRINTING, 0, 40, 50.0, clock=0.0), now=0.0)
+    free.handle(Status(1, ArmState.PRINTING, 0, 40, 50.0, clock=0.0), now=0.0)
     run(free)
     assert free.state is ArmState.DONE and free.stats.idle_time_s == 0.0
 
     r = new_runner(arm, cell, planner)
     load_and_start(r, text)
     # line 40 reported by an arm whose clock is at 500 s, long before this arm gets to the barrier
-    r.handle(Status(2, ArmState.PRINTING, 0, 40, 50.0, clock=500.0), now=0.0)
+    r.handle(Status(1, ArmState.PRINTING, 0, 40, 50.0, clock=500.0), now=0.0)
     t = 0.0
     while r.state in (ArmState.PRINTING, ArmState.WAITING) and t < 2000.0:
         t += STEP
@@ -701,3 +701,35 @@ def test_a_move_blocked_by_the_bed_itself_is_an_error_at_once(arm, cell):
     run(r, t_max=20.0)
     assert r.state is ArmState.ERROR and r.clock < 1.0
     assert "no collision-free path" in messages(r, ErrorReport)[0].message
+
+
+def test_stop_brakes_at_once_mid_line_and_resume_gives_the_same_deposit(reference, arm, cell, planner):
+    """A12 (an operator's stop): rest mid-line on the first waypoint the arm
+    can brake to, PAUSED; A6 goes on from there to the same deposit."""
+    ref = reference
+    t9 = concat(ref.beads, "t")[concat(ref.beads, "line") == 9]       # X30 -> X-30 at Y0, 60 mm
+    t_cmd = t9.min() + 0.3 * (t9.max() - t9.min())
+    r = new_runner(arm, cell, planner)
+    load_and_start(r)
+    r.advance(t_cmd)
+    x_cmd = r.nozzle_mm()[0]
+    r.handle(Stop(r.id))
+    r.advance(t_cmd + 20.0)
+    assert r.state is ArmState.PAUSED and messages(r, Status)[-1].state is ArmState.PAUSED
+    x_rest = r.nozzle_mm()[0]
+    # mid-line, well before the line's end (a pause goes on to X-30)
+    assert -30.0 + 5.0 < x_rest <= x_cmd
+    t_rest = concat(r.beads, "t").max()
+    assert t_rest < t9.max() - 1.0
+    # paused: nothing moves while time passes
+    q = r.q.copy()
+    r.advance(t_cmd + 60.0)
+    np.testing.assert_array_equal(r.q, q)
+    r.handle(Resume(r.id))
+    run(r)
+    assert r.state is ArmState.DONE
+    same_beads(r, ref)
+    got, want = bead_filament_by_line(r.beads), moving_extrusion(PROGRAM)
+    assert set(got) == set(want)
+    for line in got:
+        assert got[line] == pytest.approx(want[line], abs=1e-9)

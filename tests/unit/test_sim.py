@@ -178,7 +178,7 @@ def test_an_unreachable_line_stops_the_run_and_the_other_arm_is_told(cell, monke
     kinova, ur10 = cell.arm("kinova"), cell.arm("ur10")
     programs = {
         "kinova": program(kinova, ["G0 X-100 Y-100 Z0.2 F9000", "G1 X-60 Y-100 E1.5 F1200",
-                                   ";@A9 R1 W2 N9",                           # waits for ur10's line 9
+                                   ";@A9 R0 W1 N9",                           # waits for ur10's line 9
                                    "G1 X-60 Y-60 E1.5", "G1 X-100 Y-60 E1.5"]),
         "ur10": program(ur10, ["G0 X100 Y100 Z0.2 F9000", "G1 X60 Y100 E1.5 F1200",
                                "G1 X60 Y60 E1.5",

@@ -51,7 +51,8 @@ hub, publishing joint states, the deposit and run statistics.
   to the arm's joint trajectory controller as JointTrajectory chunks, the
   extruder's in step, and the controller's joint states are read back
   (:mod:`ambots.ros.driver`); pause (A2) brakes after what was sent, to
-  rest at the end of a G-code line, A4 while moving brakes at once.  Once
+  rest at the end of a G-code line, a stop (A12) to rest on the first
+  waypoint it can, resumable; A4 while moving brakes at once.  Once
   the controller's joint states come, the runner's clock follows what the
   arm has really executed (:mod:`ambots.pacing`): it runs at most
   ``command_delay`` s ahead of the arm's progress along the commanded
@@ -83,7 +84,7 @@ from ambots.clock import ArmReady
 from ambots.collision import ArmBody, bed_clearance, capsule_distances, clearance_between
 from ambots.errors import ProtocolError
 from ambots.motion import MotionPlanner
-from ambots.protocol import (HUB, Ack, ArmState, ClearChunk, LoadChunk, Pause, SendPosition, Start, Status,
+from ambots.protocol import (HUB, Ack, ArmState, ClearChunk, LoadChunk, Pause, SendPosition, Start, Status, Stop,
                              decode, encode)
 from ambots.reliable import Receiver, Sender, Verdict, seq_seed
 from ambots.ros import ASeriesLog, debug_param
@@ -419,7 +420,7 @@ class FirmwareNode:
         r.handle(message, now=self.sim_now)
         if stop_q is not None:
             r.q = stop_q
-        if self.driver is not None and isinstance(message, Pause) and message.robot == self.arm.id:
+        if self.driver is not None and isinstance(message, (Pause, Stop)) and message.robot == self.arm.id:
             self.driver.pause(r, self.sim_now)
         if isinstance(message, LoadChunk) and self.store is not None and r.chunk == message.identity:
             self.store.save_chunk(message.identity, message.gcode)
