@@ -134,7 +134,13 @@ def run_print(tmp, port, model, faults="", kill_after=None, slowdown="1.0", seed
 
 def start_cell(port, env, log, *args):
     """``roslaunch -p port ambots both_arms.launch speed:=max args...`` in its
-    own process group (its own master on ``port``), output to ``log``."""
+    own process group (its own master on ``port``), output to ``log``.
+    A master already on ``port`` (someone else's roscore) would be joined
+    silently and its nodes would clash with ours: refused."""
+    import socket
+    with socket.socket() as sock:
+        if sock.connect_ex(("localhost", port)) == 0:
+            raise AssertionError("port %d is taken (another ROS master?): the test needs its own" % port)
     return subprocess.Popen(["roslaunch", "-p", str(port), "ambots", "both_arms.launch", "speed:=max", *args],
                             stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
 

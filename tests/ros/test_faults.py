@@ -8,6 +8,7 @@ with the same deposit (per arm: same beads in the same order under faults;
 per G-code line the same filament and bead length after a kill), and no
 contact in the executed motion."""
 import os
+import re
 import subprocess
 import sys
 import time
@@ -157,7 +158,9 @@ def test_an_operator_stops_pauses_and_resumes_a_live_print(tmp_path, model, clea
     not list is refused; resume finishes the job with the uninterrupted
     run's deposit and no contact."""
     def operate(env, state):
-        steps = {"stop": _ctl(env, "stop", "kinova"), "pause": _ctl(env, "pause")}
+        steps = {"stop": _ctl(env, "stop", "kinova")}
+        time.sleep(3.0)                 # the UR10 goes on, until a barrier holds it for the Kinova
+        steps["pause"] = _ctl(env, "pause")
         before = _journal_sizes(state)
         time.sleep(2.0)
         steps["still"] = (before, _journal_sizes(state))
@@ -183,3 +186,9 @@ def test_an_operator_stops_pauses_and_resumes_a_live_print(tmp_path, model, clea
     assert rep["finished"] and rep["collisions"] == NO_CONTACT, rep
     assert rep["live_collisions"] == NO_CONTACT, rep
     _check_deposit(clean, run)
+    # while the Kinova was stopped the UR10 came to a barrier and waited there for it
+    states = re.findall(r"^  (kinova|ur10) \(R\d\):\s+(\w+)", open(os.path.join(run["tmp"], "front_end.log")).read(),
+                        re.M)
+    stopped = states.index(("kinova", "PAUSED"))
+    resumed = states.index(("kinova", "PRINTING"), stopped)
+    assert ("ur10", "WAITING") in states[stopped:resumed], states
