@@ -304,3 +304,72 @@ def test_the_estimate_runs_the_turns_one_after_the_other(tall_job, cell):
     est = estimate_programs(tall_job.programs, cell)
     busy = sum(a["busy_s"] for a in est["arms"].values())
     assert est["makespan_s"] == pytest.approx(busy, rel=0.02)
+
+
+# ------------------------------------------------------------------ run offline
+
+@pytest.fixture(scope="module")
+def small_run(cell, tmp_path_factory):
+    """A 60 x 20 x 5 mm block in sequential mode, run by the firmware's
+    runners on one simulated clock (``python -m ambots plan``'s run)."""
+    from ambots.job import run_job
+    from ambots.sim import check_motion, simulate
+    job = run_job(box_model(tmp_path_factory, (60, 20, 5)), cell, list(cell.arms), mode="sequential")
+    result = simulate(job.programs, cell)
+    return job, result, check_motion(result, cell)
+
+
+def _executed(result):
+    traces = {n: (np.concatenate(r.trace_t), np.concatenate(r.trace_q), np.concatenate(r.trace_v))
+              for n, r in result.runners.items()}
+    beads = {n: tuple(np.concatenate([getattr(b, k) for b in r.beads]) for k in ("p0", "p1", "t"))
+             for n, r in result.runners.items()}
+    return traces, beads
+
+
+def _checks():
+    import os
+    import sys
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "ros"))
+    import sequential_checks
+    return sequential_checks
+
+
+def test_offline_the_second_arm_keeps_off_the_first_half(cell, small_run):
+    """0 contacts (the report's check), and from the executed motion and the
+    actual beads (tests/ros/sequential_checks.py): the second arm's bodies
+    stay more than the sampling slack away from the first arm's beads, each
+    arm prints in two turns, and neither moves while the other prints."""
+    from ambots.collision import ArmBody
+    sc = _checks()
+    job, result, motion = small_run
+    assert result.finished and motion["collisions"] == {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}
+    traces, beads = _executed(result)
+    first, second = (a.name for a in cell.arms)
+    closest, _ = sc.closest_to_beads(ArmBody.from_arm(cell.arm(second)), traces[second], beads[first])
+    assert closest - sc.SLACK_MM > 0.0, closest                    # 2.38 mm measured (5 mm head gap, 2.2 mm slab)
+    turns = {n: sc.bursts(beads[n][2]) for n in (first, second)}
+    assert len(turns[first]) == len(turns[second]) == 2
+    order = sorted((t0, t1, n) for n in turns for t0, t1 in turns[n])
+    assert [n for _, _, n in order] == [first, second, first, second]
+    assert all(a[1] < b[0] for a, b in zip(order, order[1:]))
+    assert sc.moves_during(traces[second], turns[first]) < 1e-9
+    assert sc.moves_during(traces[first], turns[second]) < 1e-9
+
+
+def test_offline_one_round_would_bring_the_head_down_onto_the_first_half(cell, small_run):
+    """The control: the same job in one round (the issue's hand-over: the
+    first half whole, then the second) -- the check above sees the second
+    head come within the slack of the first half (its 5 mm half against the
+    head's 5 mm gap)."""
+    from ambots.collision import ArmBody
+    from ambots.coordinate import build_programs
+    from ambots.sim import simulate
+    sc = _checks()
+    job = small_run[0]
+    result = simulate(build_programs(job.sliced, job.parts, cell, mode="sequential", slab_mm=100.0), cell)
+    assert result.finished
+    traces, beads = _executed(result)
+    first, second = (a.name for a in cell.arms)
+    closest, _ = sc.closest_to_beads(ArmBody.from_arm(cell.arm(second)), traces[second], beads[first])
+    assert closest < sc.SLACK_MM, closest
