@@ -373,3 +373,47 @@ def test_offline_one_round_would_bring_the_head_down_onto_the_first_half(cell, s
     first, second = (a.name for a in cell.arms)
     closest, _ = sc.closest_to_beads(ArmBody.from_arm(cell.arm(second)), traces[second], beads[first])
     assert closest < sc.SLACK_MM, closest
+
+
+def _layers(x0, x1, y0, y1, layers, h=0.2, step=5.0):
+    """Hand-made slicer output: per layer, lines across the part every ``step`` mm."""
+    out = ["; test slicer", "G21", "G90", "M83"]
+    for k in range(layers):
+        z = h * (k + 1)
+        out += [";LAYER_CHANGE", ";Z:%.1f" % z, "G0 X%.1f Y%.1f Z%.1f F9000" % (x0, y0, z)]
+        for x in np.arange(x0, x1 + 1e-9, step):
+            out += ["G0 X%.1f Y%.1f F9000" % (x, y0), "G1 X%.1f Y%.1f E0.5 F1800" % (x, y1), "G1 E-0.8 F2100",
+                    "G1 E0.8 F2100"]
+    return "\n".join(out) + "\n"
+
+
+def test_a_shorter_part_ends_its_turns_early(cell):
+    """The second part is 2 mm tall, the first 6 mm: round 1 both arms,
+    round 2 the first arm alone (it is resumed by the second, which ends
+    there); the slab rule holds and no arm pauses for ever."""
+    import manifold3d as m3
+    from ambots.coordinate import build_programs
+    from ambots.partition import partition
+    parts = partition(m3.Manifold.cube([160, 40, 6]).translate([-80, -20, 0]), cell)
+    first, second = (a.name for a in cell.arms)
+    side = {p.arm.name: np.sign(np.mean(np.asarray(p.manifold.bounding_box())[[0, 3]])) for p in parts}
+    sliced = {n: _layers(*(sorted((0.0, side[n] * 80.0))), -20, 20, layers=30 if n == first else 10)
+              for n in (first, second)}
+    programs = build_programs(sliced, parts, cell, mode="sequential")
+    turns = hand_over(programs)
+    assert [n for n, _ in turns] == [first, second, first]
+    heights = Heights()
+    for n, turn in turns:
+        for kd, s in turn:
+            if kd == "move" and s.extrude:
+                assert heights.highest_near(s.end) <= s.end[2] + HEAD_GAP_MM - MARGIN_MM + 1e-6
+        for kd, s in turn:
+            if kd == "move" and s.extrude:
+                heights.lay(s)
+    dirs = {n: [decode(l[2:]) for l in p.lines if l.startswith(";@")] for n, p in programs.items()}
+    assert dirs[second][-1] == Resume(programs[first].arm.id)          # it resumes the first arm and ends
+    assert sum(isinstance(d, Pause) for d in dirs[first]) == 1 and not any(isinstance(d, Pause) for d in dirs[second])
+    # the slicer's own retractions are gone: the writer's, one per travel or park
+    for p in programs.values():
+        text = p.lines
+        assert not any(a.startswith("G1 E-") and b.startswith("G1 E-") for a, b in zip(text, text[1:]))
