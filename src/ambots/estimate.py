@@ -20,7 +20,9 @@ Two steps:
    mode) begins at the A1 another arm's program sends it; an A9 holds its
    arm until the awaited arm has finished the line (or started the layer) it
    names -- what the firmware does with the hub's reports, without the
-   messages' latency.  The makespan is when the last arm finishes.
+   messages' latency; an A2 to itself holds it until another arm's A6 (or
+   A1) sent after it paused (sequential mode's rounds).  The makespan is
+   when the last arm finishes.
 
 The estimate is checked against the offline simulation on one clock
 (:func:`ambots.sim.simulate`, every move planned, the hub and the runners'
@@ -35,7 +37,7 @@ from typing import Dict, Optional
 import numpy as np
 
 from ambots.errors import AmbotsError
-from ambots.protocol import MoveTo, Start, WaitFor
+from ambots.protocol import MoveTo, Pause, Resume, Start, WaitFor
 
 __all__ = ["ProgramTimes", "EstimateError", "line_durations", "program_time", "makespan", "estimate_programs",
            "MOVE_KINDS", "SAMPLE_MOVES"]
@@ -241,6 +243,7 @@ def makespan(times, arms, start_first=None):
     the arms would wait for each other for ever."""
     by_id = {a.id: a.name for a in arms}
     names = [a.name for a in arms if a.name in times]
+    resumes = {n: [] for n in names}                  # when other arms sent an arm A6 (or A1 once started)
     start_first = start_first or {}
     state = {}
     for n in names:
@@ -296,13 +299,24 @@ def makespan(times, arms, start_first=None):
                         s["line"] = m - 1
                         break                       # blocked: let the others run
                     s["stretches"].append((m, max(clock_at_m, t)))      # line m (the barrier) ends then
-                elif isinstance(msg, Start) and by_id.get(msg.robot) in state:
+                elif isinstance(msg, Pause) and by_id.get(msg.robot) == n:
+                    # paused until another arm's A6 (or A1) sent after it paused; earlier ones were ignored
+                    t = next((r for r in resumes[n] if r >= clock_at_m), None)
+                    if t is None:
+                        s["line"] = m - 1
+                        break                       # paused: let the others run
+                    resumes[n] = [r for r in resumes[n] if r > t]
+                    s["stretches"].append((m, t))
+                elif isinstance(msg, (Start, Resume)) and by_id.get(msg.robot) in state and by_id[msg.robot] != n:
                     o = state[by_id[msg.robot]]
-                    if o["clock"] is None:
-                        o["clock"] = clock_at_m + s["cs"][m] - s["cs"][m - 1]
+                    sent = clock_at_m + s["cs"][m] - s["cs"][m - 1]
+                    if o["clock"] is None and isinstance(msg, Start):
+                        o["clock"] = sent
                         o["start"] = o["clock"]
                         o["stretches"] = [(0, o["clock"])]
-                        progress = True
+                    elif o["clock"] is not None:
+                        resumes[by_id[msg.robot]].append(sent)
+                    progress = True
                 s["i"] += 1
                 s["line"] = m
                 progress = True

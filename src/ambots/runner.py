@@ -26,9 +26,10 @@ started), PRINTING, PAUSED, WAITING (at an A9 barrier), DONE, ERROR.
 
 Directives of the program (``;@...`` lines) are executed when reached:
 ``A9`` waits for another arm's line/layer (its A10 reports); ``A3``
-reports this arm's line and position (A10) to the others; ``A7``/``A1``
-addressed to this arm move/continue it, addressed to another arm they are
-sent through the hub.  Before the first A9 of a barrier the arm reports
+reports this arm's line and position (A10) to the others; ``A7`` addressed
+to this arm moves it, ``A2`` pauses it there (until an A6 or A1 from
+another arm resumes it: sequential mode's hand-over); other commands
+addressed to another arm (``A1``, ``A6``, ``A7``) are sent through the hub.  Before the first A9 of a barrier the arm reports
 A10 with the last completed line, which is what the other arms' A9
 barriers wait for.
 
@@ -569,6 +570,12 @@ class ArmRunner:
             self._begin(self.planner.joint_move_to(target_base, self.q, line=item.line,
                                                    layer=self.layer_of_line[item.line]), self.clock)
             self.stats.plans[self.block.planned] = self.stats.plans.get(self.block.planned, 0) + 1
+            return
+        if target == self.id and isinstance(msg, Pause):
+            # ;@A2 to itself (sequential mode: until the arm it handed over to resumes it, A6)
+            self.done_line = item.line
+            self.state = ArmState.PAUSED
+            self._report()
             return
         if target == self.id:
             self.done_line = item.line

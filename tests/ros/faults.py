@@ -59,15 +59,19 @@ def small_model(path):
 
 
 def run_print(tmp, port, model, faults="", kill_after=None, slowdown="1.0", seed=0, timeout=600,
-              kill_hub_after=None, replace_front_end_after=None, during=None):
+              kill_hub_after=None, replace_front_end_after=None, during=None, mode="concurrent",
+              kill_when=None):
     """One print (see the module docstring).  ``kill_after``: wall seconds
     after the first motion at which the Kinova's firmware is killed with
-    SIGKILL (None: no kill); ``kill_hub_after``: the same for the hub;
+    SIGKILL (None: no kill); ``kill_when``: instead, the first time its
+    checkpoint shows this state (e.g. "PAUSED": waiting for its next turn
+    in sequential mode); ``kill_hub_after``: the same for the hub;
     ``replace_front_end_after``: the front end is killed then, and a new
     one (``--follow``) follows the job to its end.  ``during(env, state)``:
     called once the Kinova has laid its first bead (``env``: the
     environment of this ROS master; ``state``: the nodes' state directory);
-    what it returns is the result's ``"during"``."""
+    what it returns is the result's ``"during"``.  ``mode``: the front
+    end's --mode."""
     tmp = str(tmp)
     os.makedirs(tmp, exist_ok=True)
     env = dict(os.environ, ROS_MASTER_URI="http://localhost:%d" % port, ROS_HOME=os.path.join(tmp, "ros_home"))
@@ -87,8 +91,13 @@ def run_print(tmp, port, model, faults="", kill_after=None, slowdown="1.0", seed
         import rospkg
         node = os.path.join(rospkg.RosPack().get_path("ambots"), "nodes", "front_end")
         fe = subprocess.Popen([sys.executable, node, "--print", "--model", model, "--out",
-                               os.path.join(tmp, "job"), "--timeout", str(timeout), "--arms", "kinova,ur10"],
-                              stdout=logs["front_end"], stderr=subprocess.STDOUT, env=env)
+                               os.path.join(tmp, "job"), "--timeout", str(timeout), "--arms", "kinova,ur10",
+                               "--mode", mode], stdout=logs["front_end"], stderr=subprocess.STDOUT, env=env)
+        if kill_when is not None and _wait_for_state(state, fe, "kinova", kill_when):
+            pid = node_processes("firmware").get("kinova")
+            if pid is not None:
+                os.kill(pid, signal.SIGKILL)
+                kills += 1
         events = sorted((t, what) for t, what in ((kill_after, "kinova"), (kill_hub_after, "hub"),
                                                   (replace_front_end_after, "front_end")) if t is not None)
         during_result = None
@@ -198,6 +207,38 @@ def _wait_for_beads(state, fe, arm="kinova"):
         if os.path.exists(journal) and os.path.getsize(journal) > 0:
             break
         time.sleep(0.05)
+
+
+def unused_port():
+    """A TCP port nobody listens on right now (the kernel's choice), for a
+    master of our own (a fixed port may be another run's)."""
+    import socket
+    with socket.socket() as sock:
+        sock.bind(("localhost", 0))
+        return sock.getsockname()[1]
+
+
+def _wait_for_state(state, fe, arm, name, timeout=300.0):
+    """Wait until the arm's checkpoint (written at every change of state)
+    shows state ``name``; False if the front end ended or time ran out."""
+    store = StateStore(state, arm)
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end and fe.poll() is None:
+        cp = store.load() if os.path.exists(store.checkpoint_file) else None
+        if cp and cp.get("runner", {}).get("state") == name:
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def sequential_model(path):
+    """A 60 x 20 x 5 mm block: in sequential mode two turns per arm (its
+    5 mm are more than a print head passes over in one)."""
+    import trimesh
+    box = trimesh.creation.box(extents=(60.0, 20.0, 5.0))
+    box.apply_translation((0.0, 0.0, 2.5))
+    box.export(path)
+    return path
 
 
 def by_line(journal):

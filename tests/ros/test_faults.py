@@ -3,7 +3,10 @@ print of a small two-arm job is the reference; then the same job with
 20 % drop + 10 % duplication + reordering on every hub topic (seeded),
 with the Kinova's firmware killed (SIGKILL) mid-print and respawned, with
 the hub killed (respawned) and the front end killed (a new one follows the
-job with --follow), and with the UR10 running 30 % slower than planned.  Every run must finish
+job with --follow), and with the UR10 running 30 % slower than planned; and
+the sequential hand-over (A7/A1/A2/A6 through the hub, two turns per arm)
+under the same faults with the Kinova killed while it waits for its next
+turn.  Every run must finish
 with the same deposit (per arm: same beads in the same order under faults;
 per G-code line the same filament and bead length after a kill), and no
 contact in the executed motion."""
@@ -17,7 +20,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from faults import compare_lines, coverage, run_print, small_model  # noqa: E402
+from faults import compare_lines, coverage, run_print, sequential_model, small_model, unused_port  # noqa: E402
 
 FAULTS = "drop=0.2 dup=0.1 reorder=0.3 reorder_window=0.05 delay=0.002 seed=%d"
 NO_CONTACT = {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}
@@ -192,3 +195,27 @@ def test_an_operator_stops_pauses_and_resumes_a_live_print(tmp_path, model, clea
     stopped = states.index(("kinova", "PAUSED"))
     resumed = states.index(("kinova", "PRINTING"), stopped)
     assert ("ur10", "WAITING") in states[stopped:resumed], states
+
+
+def test_the_sequential_hand_over_survives_faults_and_a_kill_while_paused(tmp_path_factory):
+    """Sequential mode on a block that takes two turns per arm: the hand-over
+    commands go through the hub (A7, A1, then A6 and A2 between turns) under
+    20 % drop + 10 % duplication + reordering, and the Kinova's firmware is
+    killed (SIGKILL) while it is paused for the UR10's turn.  It comes back
+    PAUSED from its checkpoint, the UR10's A6 resumes it, the print ends
+    without contact, and both arms lay the clean sequential run's beads."""
+    model = sequential_model(str(tmp_path_factory.mktemp("seq_model") / "block.stl"))
+    clean = run_print(tmp_path_factory.mktemp("seq_clean"), unused_port(), model, mode="sequential")
+    assert clean["front_end_rc"] == 0, clean["tmp"]
+    assert clean["report"]["finished"] and clean["report"]["collisions"] == NO_CONTACT, clean["report"]
+    run = run_print(tmp_path_factory.mktemp("seq_faults"), unused_port(), model, faults=FAULTS % 11, mode="sequential",
+                    kill_when="PAUSED")
+    assert run["kills"] == 1, run["tmp"]
+    assert run["front_end_rc"] == 0, run["tmp"]
+    rep = run["report"]
+    assert rep["finished"] and rep["collisions"] == NO_CONTACT, rep
+    launch_log = open(os.path.join(run["tmp"], "launch.log")).read()
+    assert "kinova firmware: resumed from its checkpoint: PAUSED" in launch_log
+    faults = rep["hub_progress"]["faults"]
+    assert faults["in"]["dropped"] > 5 and faults["out"]["dropped"] > 5, faults
+    _check_deposit(clean, run)

@@ -235,9 +235,9 @@ def test_sequential_is_the_original_hand_over(cell, job):
     kinova, ur10 = programs["kinova"], programs["ur10"]
     assert kinova.start_first and not ur10.start_first
     a_lines = [decode(l[2:]) for l in kinova.lines if l.startswith(";@")]
-    assert isinstance(a_lines[0], MoveTo) and a_lines[0].robot == 1          # park the UR10 first
-    assert isinstance(a_lines[-2], MoveTo) and a_lines[-2].robot == 0        # then park itself
-    assert a_lines[-1] == Start(2)                                            # and start the UR10
+    assert isinstance(a_lines[0], MoveTo) and a_lines[0].robot == ur10.arm.id    # park the UR10 first
+    assert isinstance(a_lines[-2], MoveTo) and a_lines[-2].robot == kinova.arm.id  # then park itself
+    assert a_lines[-1] == Start(ur10.arm.id)                                    # and start the UR10
     assert [type(decode(l[2:])) for l in ur10.lines if l.startswith(";@")] == [MoveTo]
     assert extrusions(ur10.text) == extrusions(sliced["ur10"].replace("A1 R2 ; must be stripped", ""))
 

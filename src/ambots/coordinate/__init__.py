@@ -1,9 +1,12 @@
 """Coordination: each arm's sliced G-code -> one program per arm (G-code plus
 A-series commands), in one of two modes.
 
-``sequential`` (the original project's behaviour): the first arm sends every
-other arm to its park position (A7), prints its whole part, parks itself and
-starts the next arm (A1); and so on down the cell's list of arms.
+``sequential`` (the original project's hand-over, in rounds): the first arm
+sends every other arm to its park position (A7); the arms print in turn, each
+its layers of a round (a slab low enough for the next arm's print head to
+pass over it), then park and hand over: A1 starts the next arm, A6 resumes
+it later, A2 pauses the arm until its next turn
+(:mod:`~ambots.coordinate.sequential`).
 
 ``concurrent`` (default): all arms print the same layer at the same time,
 for any number of arms.  The spacing rule: two arms whose work comes within
@@ -70,7 +73,7 @@ __all__ = ["ArmProgram", "build_programs", "park_positions_mm", "home_positions_
            "seam_zones_for", "seam_planes", "adjacent_arms", "read_sliced", "Sliced"]
 
 
-def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=None, idle=()):
+def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=None, idle=(), slab_mm=None):
     """Build every arm's program.
 
     Parameters
@@ -90,6 +93,9 @@ def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=No
     idle : arms of the cell without work in this job: a one-arm job (or a
         sequential one) sends them to their park positions first (A7), as
         sequential mode does with the arms that wait for their turn
+    slab_mm : sequential mode: the most a round's slab may rise over its
+        first layer (default: from the print heads,
+        :func:`~ambots.coordinate.sequential.slab_rounds`)
 
     Returns {arm name: :class:`ArmProgram`}, in the parts' order.
     """
@@ -101,7 +107,7 @@ def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=No
     read = {a.name: _read(sliced[a.name], "%s.gcode" % a.name) for a in arms}
     n_layers = max([max(layers) + 1 for _, layers in read.values() if layers] or [0])
     if mode == "sequential" or (len(arms) == 1 and idle):
-        return sequential_programs(arms, read, park, idle, mode)
+        return sequential_programs(arms, read, park, idle, mode, moves=JointMoves(cell, arms), slab_mm=slab_mm)
     planes = seam_planes(parts)
     if zone_mm is None:
         zones = seam_zones_for(cell, arms, parts)

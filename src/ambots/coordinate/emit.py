@@ -56,6 +56,8 @@ class _Writer:
         #: after a retraction: the next travel starts with a move straight over
         #: its target and ends with the unretraction
         self.parked = False
+        #: the filament is retracted now (by a park, or an E-only move of the slicer's)
+        self.retracted = False
         self.retract_mm, self.retract_feed, self.travel_feed = retract_mm, retract_feed, travel_feed
         #: travels shorter than this within a layer are not retracted or lifted
         #: (the slicers' ``retract_before_travel``)
@@ -73,7 +75,7 @@ class _Writer:
             self.emit("G0 X%.3f Y%.3f Z%.3f F%.0f" % (p[0], p[1], p[2] + 10.0, feed or self.travel_feed))
             self.emit("G0 Z%.3f" % p[2])
             self.emit("G1 E%.5f F%.0f" % (self.retract_mm, self.retract_feed))
-            self.parked = False
+            self.parked = self.retracted = False
             self.pos = tuple(p)
             return
         if self.pos is not None and close(self.pos, p, atol=1e-6):
@@ -82,7 +84,8 @@ class _Writer:
                 and np.hypot(self.pos[0] - p[0], self.pos[1] - p[1]) < self.short_travel_mm):
             self.emit("G0 X%.3f Y%.3f F%.0f" % (p[0], p[1], feed or self.travel_feed))
         elif self.pos is not None:
-            self.emit("G1 E-%.5f F%.0f" % (self.retract_mm, self.retract_feed))
+            if not self.retracted:
+                self.emit("G1 E-%.5f F%.0f" % (self.retract_mm, self.retract_feed))
             if self.hop_mm > 0 or abs(self.pos[2] - p[2]) > 1e-6:
                 lift = max(self.pos[2], p[2]) + self.hop_mm        # clear what was printed
                 self.emit("G0 Z%.3f F%.0f" % (lift, feed or self.travel_feed))
@@ -92,19 +95,39 @@ class _Writer:
             else:
                 self.emit("G0 X%.3f Y%.3f F%.0f" % (p[0], p[1], feed or self.travel_feed))
             self.emit("G1 E%.5f F%.0f" % (self.retract_mm, self.retract_feed))
+            self.retracted = False
         else:
             self.emit("G0 X%.3f Y%.3f Z%.3f F%.0f" % (p[0], p[1], p[2], feed or self.travel_feed))
         self.pos = tuple(p)
 
-    def park(self, arm, xyz, lift_mm=10.0):
-        """Retract, lift clear of the part and go to ``xyz`` (mm; an A7
-        directive: a joint move of the firmware's planner)."""
+    def approach(self, p, z_safe):
+        """The first move to ``p`` (mm) from wherever the arm is (its home
+        pose, its park position): over ``p`` at height ``z_safe`` (mm; a
+        joint move of the firmware's planner, as the nozzle is not where
+        the G-code was), then straight down; unretract if a park retracted."""
+        feed = self.travel_feed
+        self.emit("G0 X%.3f Y%.3f Z%.3f F%.0f" % (p[0], p[1], max(float(z_safe), p[2]), feed))
+        if max(float(z_safe), p[2]) != p[2]:
+            self.emit("G0 Z%.3f F%.0f" % (p[2], feed))
+        if self.retracted:
+            self.emit("G1 E%.5f F%.0f" % (self.retract_mm, self.retract_feed))
+        self.parked = self.retracted = False
+        self.pos = tuple(p)
+
+    def park(self, arm, xyz, lift_mm=10.0, lift_to=None):
+        """Retract, lift clear of the part (``lift_mm`` over the nozzle, or
+        to the height ``lift_to``, mm) and go to ``xyz`` (mm; an A7
+        directive: a joint move of the firmware's planner).  A program that
+        ends retracted (the slicer's last retraction) is not retracted twice."""
         if self.pos is not None and not self.parked:
-            self.emit("G1 E-%.5f F%.0f" % (self.retract_mm, self.retract_feed))
-            self.emit("G0 Z%.3f F%.0f" % (self.pos[2] + lift_mm, self.travel_feed))
+            if not self.retracted:
+                self.emit("G1 E-%.5f F%.0f" % (self.retract_mm, self.retract_feed))
+            z = self.pos[2] + lift_mm if lift_to is None else max(float(lift_to), self.pos[2])
+            self.emit("G0 Z%.3f F%.0f" % (z, self.travel_feed))
         x, y, z = xyz
         self.emit(directive(MoveTo(arm.id, round(float(x), 3), round(float(y), 3), round(float(z), 3))))
         self.parked = self.pos is not None
+        self.retracted = self.retracted or self.parked
 
     def segments(self, segs):
         for s in segs:
@@ -112,11 +135,13 @@ class _Writer:
             if not moved:
                 if s.e:
                     self.emit("G1 E%.5f F%.0f" % (s.e, s.feedrate or self.retract_feed))
+                    self.retracted = s.e < 0
                 continue
             if self.pos is None or not close(self.pos, s.start, atol=1e-6):
                 self.travel_to(s.start)
             x, y, z = s.end
             if s.extrude:
+                self.retracted = False
                 self.emit("G1 X%.3f Y%.3f Z%.3f E%.5f F%.0f" % (x, y, z, s.e, s.feedrate))
             else:
                 self.emit("G0 X%.3f Y%.3f Z%.3f F%.0f" % (x, y, z, s.feedrate or self.travel_feed))
@@ -171,12 +196,14 @@ class Emitter:
         for wait in st.waits:
             self.waits.append((len(w.lines), wait))
             w.lines.append(None)
-        if st.travel is not None:
+        if st.approach is not None:
+            w.approach(st.travel if st.travel is not None else st.pieces[0].start, st.approach)
+        elif st.travel is not None:
             w.travel_to(st.travel)
         if st.pieces:
             w.segments(st.pieces)
         if st.park is not None:
-            w.park(self.arm, st.park)
+            w.park(self.arm, st.park, lift_to=st.lift_to)
         if st.report:
             w.emit(directive(SendPosition(st.report)))
         if st.mark is not None:

@@ -91,8 +91,10 @@ class JointMoves:
         self.kin = {a.name: arm_kinematics(a) for a in arms}
         self.bed = np.asarray(cell.bed.pose, dtype=float)
         self.top = cell.bed.max_height * 1000.0
+        self.cell = cell
         self.samples = int(samples)
         self._cache = {}
+        self._bodies = {}
 
     def _ik(self, name, p_mm, seed):
         from ambots.workspace import down_in_base, world_to_base
@@ -102,6 +104,22 @@ class JointMoves:
                                            down_in_base(arm))
         return Q[0] if ok[0] else None
 
+    def joints(self, name, a_mm, b_mm):
+        """Joint vectors (samples, n) of the joint move from nozzle-down at
+        ``a_mm`` (None: the arm's home pose) to nozzle-down at ``b_mm``
+        (bed mm), or None if either end is out of reach."""
+        key = ("q", name, None if a_mm is None else tuple(np.round(a_mm, 6)), tuple(np.round(b_mm, 6)))
+        if key not in self._cache:
+            home = np.asarray(self.arm[name].profile.home, dtype=float)
+            qa = home if a_mm is None else self._ik(name, a_mm, home)
+            qb = None if qa is None else self._ik(name, b_mm, qa)
+            Q = None
+            if qb is not None:
+                u = np.linspace(0.0, 1.0, self.samples)[:, None]
+                Q = (1.0 - u) * qa + u * qb
+            self._cache[key] = Q
+        return self._cache[key]
+
     def path(self, name, a_mm, b_mm):
         """Nozzle positions (K, 3), bed mm, on the joint move from nozzle-down
         at ``a_mm`` (None: the arm's home pose) to nozzle-down at ``b_mm``,
@@ -110,15 +128,31 @@ class JointMoves:
         key = (name, None if a_mm is None else tuple(np.round(a_mm, 6)), tuple(np.round(b_mm, 6)))
         if key in self._cache:
             return self._cache[key]
-        home = np.asarray(self.arm[name].profile.home, dtype=float)
-        qa = home if a_mm is None else self._ik(name, a_mm, home)
-        qb = None if qa is None else self._ik(name, b_mm, qa)
+        Q = self.joints(name, a_mm, b_mm)
         out = np.zeros((0, 3))
-        if qb is not None:
-            u = np.linspace(0.0, 1.0, self.samples)[:, None]
-            T = self.arm[name].base_pose @ self.kin[name].fk_batch((1.0 - u) * qa + u * qb)
+        if Q is not None:
+            T = self.arm[name].base_pose @ self.kin[name].fk_batch(Q)
             inv = np.linalg.inv(self.bed)
             P = (T[:, :3, 3] @ inv[:3, :3].T + inv[:3, 3]) * 1000.0
             out = P[P[:, 2] <= self.top]
         self._cache[key] = out
         return out
+
+    def clearance_mm(self, name, a_mm, b_mm, box_lo_mm, box_hi_mm):
+        """The smallest clearance (mm) of the arm's bodies (its collision
+        capsules, :class:`ambots.collision.ArmBody`) to the bed and to the
+        box ``box_lo_mm`` .. ``box_hi_mm`` (bed frame, mm: the part printed
+        so far) on the joint move from ``a_mm`` (None: home) to ``b_mm``;
+        None if either end is out of reach."""
+        from ambots.collision import ArmBody, bed_clearance, box_clearance
+        Q = self.joints(name, a_mm, b_mm)
+        if Q is None:
+            return None
+        if name not in self._bodies:
+            self._bodies[name] = ArmBody.from_arm(self.arm[name])
+        body = self._bodies[name]
+        A, B, r = body.capsules(Q)
+        inv = np.linalg.inv(self.bed)                 # the box is in the bed frame
+        part = box_clearance(A @ inv[:3, :3].T + inv[:3, 3], B @ inv[:3, :3].T + inv[:3, 3], r,
+                             np.asarray(box_lo_mm) / 1000.0, np.asarray(box_hi_mm) / 1000.0)
+        return float(min(bed_clearance(body, Q, self.cell).min(), part.min())) * 1000.0

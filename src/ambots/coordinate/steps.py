@@ -70,8 +70,13 @@ class Step:
     layers: List[float] = field(default_factory=list)  #: a ``;LAYER_CHANGE`` / ``;Z:`` pair per z (mm)
     waits: List[Wait] = field(default_factory=list)
     travel: Optional[tuple] = None                   #: travel here first (mm)
+    #: the first move from wherever the arm stands (home, park position): over the
+    #: travel's point (or the first piece's start) at this height (mm), then straight down
+    approach: Optional[float] = None
     pieces: list = field(default_factory=list)       #: segments printed
     park: Optional[tuple] = None                     #: then go to this park position (mm; A7)
+    #: lift the nozzle straight up to this height (mm) before the park's A7 (default: 10 mm up)
+    lift_to: Optional[float] = None
     report: int = 0                                  #: then report (A3) to this robot id (0: none)
     mark: object = None                              #: then name the line reached (for other arms' waits)
 
