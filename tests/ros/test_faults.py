@@ -171,7 +171,7 @@ def test_an_operator_stops_pauses_and_resumes_a_live_print(tmp_path, model, clea
         steps["resume"] = _ctl(env, "resume")
         return steps
 
-    run = run_print(tmp_path, 11618, model, during=operate)
+    run = run_print(tmp_path, unused_port(), model, during=operate)
     steps = run["during"]
     rc, out = steps["stop"]
     assert rc == 0 and "A12 R0 sent to kinova (R0)" in out and "kinova PAUSED" in out, out
