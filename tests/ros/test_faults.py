@@ -189,6 +189,7 @@ def test_an_operator_stops_pauses_and_resumes_a_live_print(tmp_path, model, clea
     assert rep["finished"] and rep["collisions"] == NO_CONTACT, rep
     assert rep["live_collisions"] == NO_CONTACT, rep
     _check_deposit(clean, run)
+    assert "[A-series]" not in open(os.path.join(run["tmp"], "launch.log")).read()      # debug is off by default
     # while the Kinova was stopped the UR10 came to a barrier and waited there for it
     states = re.findall(r"^  (kinova|ur10) \(R\d\):\s+(\w+)", open(os.path.join(run["tmp"], "front_end.log")).read(),
                         re.M)

@@ -9,7 +9,9 @@ topics (/ambots/kinova_topic, /ambots/ur_topic, recorded here); each arm
 printed every extrusion of its program exactly once (its deposit journal
 against the G-code, parsed here); no contact; and the Kinova's ``;@A3 R1``
 reports (the original's "send my position to arm 1") reached the UR10's
-inbox with the Kinova's position at that line of its program."""
+inbox with the Kinova's position at that line of its program.  The cell
+runs with ``debug:=true``: the hub and the firmware log every A-series
+message they send and receive."""
 import json
 import os
 import re
@@ -85,7 +87,7 @@ def test_the_originals_strings_print_the_two_halves_with_ids_0_and_1(tmp_path):
     out, state = os.path.join(tmp, "out"), os.path.join(tmp, "state")
     os.makedirs(out)
     log = open(os.path.join(tmp, "launch.log"), "w")
-    launch = start_cell(port, env, log, "callers:=/ambots_ctl /operator", "state_dir:=%s" % state)
+    launch = start_cell(port, env, log, "callers:=/ambots_ctl /operator", "state_dir:=%s" % state, "debug:=true")
     inbox_log = os.path.join(tmp, "inboxes.jsonl")
     try:
         helpers = []
@@ -115,6 +117,14 @@ def test_the_originals_strings_print_the_two_halves_with_ids_0_and_1(tmp_path):
         stop_cell(launch)
         log.close()
 
+    # debug:=true: every node printed each A-series message it sent and received, one line each
+    launch_log = open(os.path.join(tmp, "launch.log")).read()
+    for line in ("[A-series] hub <- /operator: A5 R0 (+", "[A-series] hub -> /ambots/kinova_topic: A5 R0 ",
+                 "[A-series] kinova firmware <- hub via /ambots/kinova_topic: A5 R0 ",
+                 "[A-series] ur10 firmware -> /ambots/communication_hub_topic: A8 R1001 Q",
+                 "[A-series] hub <- /operator: A1 R1"):
+        assert line in launch_log, line
+    assert "G1 X" not in "".join(l for l in launch_log.splitlines() if "[A-series]" in l)   # payloads counted
     report = json.load(open(os.path.join(out, "report.json")))
     assert report["finished"] and report["collisions"] == NO_CONTACT, report
     assert report["live_collisions"] == NO_CONTACT, report

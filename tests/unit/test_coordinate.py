@@ -479,3 +479,23 @@ def test_the_timeline_counts_the_joint_moves_to_and_from_the_park_position():
     ends = max(park @ towards_ur10, target @ towards_ur10)
     assert (low @ towards_ur10).max() > ends + 15.0
     assert abs((est @ towards_ur10).max() - (low @ towards_ur10).max()) < 1.0
+
+
+def test_robot_id_0_is_an_id_like_any_other(cell, job):
+    """The default cell numbers its arms from 0 (the original's ids): its
+    programs are those of the same cell numbered from 1, id for id (an id 0
+    once read as "no report" dropped the UR10's ;@A3 lines, and the other
+    arm then waited for a later report)."""
+    import dataclasses
+    import re
+    assert [a.id for a in cell.arms] == [0, 1]
+    from_1 = dataclasses.replace(cell, arms=tuple(dataclasses.replace(a, id=a.id + 1) for a in cell.arms))
+    model = m3.Manifold.cube([160, 40, 0.8]).translate([-80, -20, 0])       # the fixture's
+    parts_1 = partition(model, from_1)
+    for mode in ("concurrent", "sequential"):
+        got = build_programs(job[1], job[0], cell, mode=mode)
+        want = build_programs(job[1], parts_1, from_1, mode=mode)
+        for name in got:
+            shifted = [re.sub(r"\b([RW])(\d+)\b", lambda m: m.group(1) + str(int(m.group(2)) - 1), line)
+                       if line.startswith((";@", "; ambots program")) else line for line in want[name].lines]
+            assert got[name].lines == shifted, (mode, name)

@@ -6,7 +6,7 @@ import zlib
 import pytest
 
 from ambots.errors import ProtocolError
-from ambots.protocol import (HUB, MAX_ID, MAX_ROBOT, MAX_TEXT, MAX_U32, Ack, ArmState, ClearChunk,
+from ambots.protocol import (HUB, MAX_ID, MAX_ROBOT, one_line, MAX_TEXT, MAX_U32, Ack, ArmState, ClearChunk,
                              ErrorReport, LoadChunk, MoveTo, Pause, Resume, SendPosition, Start,
                              Status, WaitFor, ack, decode, encode)
 
@@ -215,3 +215,10 @@ def test_random_and_mutated_strings_never_crash_the_decoder():
         assert decode(encode(cmd)) == cmd
     # both branches well exercised (robot ids are 0..999, so a digit inserted into R is often refused)
     assert ok > 800 and rejected > 3000
+
+
+def test_one_line_for_the_debug_log():
+    assert one_line("A10 R0 T1 L3 N120 P12.5 S0 Q5") == "A10 R0 T1 L3 N120 P12.5 S0 Q5"
+    assert one_line("A5 R1 C3 L21 K9\nG1 X1 Y2 E0.1\nG1 X3") == "A5 R1 C3 L21 K9 (+2 G-code lines)"
+    assert one_line("A1 R0\x07 \u2713") == "A1 R0\\x07 \u2713"                    # escaped, never raises
+    assert one_line(b"A1 R0") == "b'A1 R0'" and len(one_line("A1 " + "9" * 5000)) == 203

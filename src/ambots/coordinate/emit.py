@@ -204,7 +204,7 @@ class Emitter:
             w.segments(st.pieces)
         if st.park is not None:
             w.park(self.arm, st.park, lift_to=st.lift_to)
-        if st.report:
+        if st.report is not None:
             w.emit(directive(SendPosition(st.report)))
         if st.mark is not None:
             self.marks[st.mark] = len(w.lines)

@@ -6,6 +6,7 @@ arm in another's way retreats to its park position.  See
 
 Units: mm, s."""
 from dataclasses import dataclass, field
+from typing import Optional
 
 import numpy as np
 
@@ -29,7 +30,7 @@ class Act:
     fp: np.ndarray               #: distance (mm) to each adjacent arm's plane: closest over the step
     segs: list = field(default_factory=list)
     waits: dict = field(default_factory=dict)    #: {other arm: index of its step to wait for}
-    report: int = 0              #: the arm that first waits for this step's end (robot id), 0: none
+    report: Optional[int] = None  #: the arm that first waits for this step's end (robot id; 0 is one), or None
 
 
 def _path_time(pos, segs):

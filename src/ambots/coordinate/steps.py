@@ -77,7 +77,7 @@ class Step:
     park: Optional[tuple] = None                     #: then go to this park position (mm; A7)
     #: lift the nozzle straight up to this height (mm) before the park's A7 (default: 10 mm up)
     lift_to: Optional[float] = None
-    report: int = 0                                  #: then report (A3) to this robot id (0: none)
+    report: Optional[int] = None                     #: then report (A3) to this robot id (None: no report)
     mark: object = None                              #: then name the line reached (for other arms' waits)
 
 

@@ -172,7 +172,7 @@ def _barriers(acts, nbrs, arm_of):
                 if m > last[b]:
                     act.waits[b] = m
                     last[b] = m
-                    if not acts[b][m].report:
+                    if acts[b][m].report is None:
                         acts[b][m].report = arm_of[n].id
 
 
@@ -191,7 +191,7 @@ def _steps(acts, names, park, n_layers):
             st.travel, st.pieces = act.segs[0].start, act.segs
         else:
             st.park = park
-        if act.report:
+        if act.report is not None:
             st.report, st.mark = act.report, i
         steps.append(st)
     return steps

@@ -386,7 +386,7 @@ class FirmwareNode:
                 self._apply(m)
             elif delivery.verdict is Verdict.STALE:
                 rospy.logwarn("%s firmware: Q%d of node %d is older than the window: not executed",
-                              self.arm.name, m.seq, m.sender or 0)
+                              self.arm.name, m.seq, HUB if m.sender is None else m.sender)
             elif delivery.verdict is Verdict.UNNUMBERED:
                 rospy.logwarn("%s firmware: ignored unnumbered %r (everything comes numbered through the hub)",
                               self.arm.name, data[:80])
