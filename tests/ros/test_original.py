@@ -3,7 +3,8 @@ roscore, the cell, the hub and both firmware nodes (both_arms.launch, with
 ``callers:=`` naming an operator); the per-arm programs come from
 ``python -m ambots slice``, and everything else is what the original's
 users typed: ``rostopic pub`` of ``A5 R0\\n<G-code>``, ``A5 R1\\n<G-code>``,
-``A1 R0`` and ``A1 R1`` on /ambots/communication_hub_topic.  Checked
+``A1 R0`` and ``A1 R1`` on /ambots/communication_hub_topic (latched, each
+until the hub has forwarded it).  Checked
 independently of the code under test: the hub delivered on the original's
 topics (/ambots/kinova_topic, /ambots/ur_topic, recorded here); each arm
 printed every extrusion of its program exactly once (its deposit journal
@@ -22,7 +23,7 @@ import time
 import yaml
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from faults import _WATCH, coverage, small_model, start_cell, stop_cell  # noqa: E402
+from faults import _WATCH, coverage, small_model, start_cell, stop_cell, unused_port  # noqa: E402
 
 from ambots.checkpoint import StateStore  # noqa: E402
 
@@ -61,14 +62,30 @@ def positions_at_a3(program_text):
     return out
 
 
-def pub(env, tmp, text, name):
-    """``rostopic pub -1 -f <file> /ambots/communication_hub_topic std_msgs/String __name:=operator``."""
+def pub(env, tmp, text, name, inbox_log, topic):
+    """``rostopic pub -l -f <file> /ambots/communication_hub_topic std_msgs/String __name:=operator``,
+    left running (latched) until the hub has forwarded the command to ``topic``
+    (seen in ``inbox_log``): a ``rostopic pub -1`` that exits before the hub
+    has connected to it is lost, for the original's users as for us."""
     path = os.path.join(tmp, name + ".yaml")
     with open(path, "w") as f:
         yaml.safe_dump({"data": text}, f)
-    r = subprocess.run(["rostopic", "pub", "-1", "-f", path, HUB, "std_msgs/String", "__name:=operator"],
-                       env=env, capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0, r.stdout + r.stderr
+    head = text.split("\n", 1)[0] + " "
+    proc = subprocess.Popen(["rostopic", "pub", "-l", "-f", path, HUB, "std_msgs/String", "__name:=operator"],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            with open(inbox_log) as f:
+                lines = [json.loads(line) for line in f if line.endswith("\n")]     # whole lines only
+            if any(t == topic and d.startswith(head) for t, d in lines):
+                return
+            assert proc.poll() is None, "rostopic pub ended with %s" % proc.returncode
+            time.sleep(0.2)
+        raise AssertionError("the hub did not forward %r to %s" % (head, topic))
+    finally:
+        proc.terminate()
+        proc.wait(30)
 
 
 def test_the_originals_strings_print_the_two_halves_with_ids_0_and_1(tmp_path):
@@ -82,7 +99,7 @@ def test_the_originals_strings_print_the_two_halves_with_ids_0_and_1(tmp_path):
     a3 = positions_at_a3(programs["kinova"])
     assert a3 and all(";@A3 R1" in programs["kinova"].splitlines()[n - 1] for n in a3)
 
-    port = 11619
+    port = unused_port()
     env = dict(os.environ, ROS_MASTER_URI="http://localhost:%d" % port, ROS_HOME=os.path.join(tmp, "ros_home"))
     out, state = os.path.join(tmp, "out"), os.path.join(tmp, "state")
     os.makedirs(out)
@@ -99,11 +116,11 @@ def test_the_originals_strings_print_the_two_halves_with_ids_0_and_1(tmp_path):
                 if line.strip() == "ready":
                     break
             helpers.append(p)
-        time.sleep(3.0)                         # the hub and both firmware up (the A5s are latched anyway)
-        pub(env, tmp, "A5 R0\n" + programs["kinova"], "a5_r0")
-        pub(env, tmp, "A5 R1\n" + programs["ur10"], "a5_r1")
-        pub(env, tmp, "A1 R0", "a1_r0")
-        pub(env, tmp, "A1 R1", "a1_r1")
+        kinova, ur10 = "/ambots/kinova_topic", "/ambots/ur_topic"
+        pub(env, tmp, "A5 R0\n" + programs["kinova"], "a5_r0", inbox_log, kinova)
+        pub(env, tmp, "A5 R1\n" + programs["ur10"], "a5_r1", inbox_log, ur10)
+        pub(env, tmp, "A1 R0", "a1_r0", inbox_log, kinova)
+        pub(env, tmp, "A1 R1", "a1_r1", inbox_log, ur10)
         watch, listener = helpers
         for line in watch.stdout:
             if line.strip() == "written":
