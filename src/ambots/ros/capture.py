@@ -91,8 +91,9 @@ def _latest_copy(rows, col=0):
 
 
 class PrintRecorder:
-    """Watches a live print: the deposit markers (for the bead mesh), every
-    arm's joint states (arm-arm clearance with the capsule model, for pairs
+    """Watches a live print: the beads every firmware laid (``~beads`` rows:
+    the bead mesh, and the part's box for the arm-part check), every arm's
+    joint states (arm-arm clearance with the capsule model, for pairs
     of states stamped with the same instant of the one clock), the firmware
     stats and the hub's progress.  :meth:`done`
     says when every arm of the job is DONE (or one is in ERROR);
@@ -103,17 +104,14 @@ class PrintRecorder:
         import threading
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64MultiArray, String
-        from visualization_msgs.msg import MarkerArray
 
         from ambots import topics
         from ambots.collision import ArmBody
-        from ambots.rviz import DEPOSIT_TOPIC
         self.cell = cell
         #: where the front end writes the job (job.json: which arms have work, the plan chosen)
         self.job_dir = job_dir
         self._json = json
         self._lock = threading.RLock()
-        self.markers = {}                      #: (ns, id) -> latest Marker
         self.stats = {}                        #: arm -> firmware stats dict
         self.progress = {}
         self.q = {}
@@ -129,7 +127,6 @@ class PrintRecorder:
         self.bead_times = {}      #: arm -> [(K, 8) rows of (p0, p1, ROS time, e_mm)]
         self._row_seq = {}
         self.trace_gaps = 0       #: trace/bead chunks never received (numbered by the firmware)
-        rospy.Subscriber(DEPOSIT_TOPIC, MarkerArray, self._on_markers, queue_size=100)
         rospy.Subscriber(topics.PROGRESS_TOPIC, String, self._on_progress, queue_size=10)
         for arm in cell.arms:
             rospy.Subscriber(topics.joint_states_topic(arm.name), JointState, self._on_joints,
@@ -141,28 +138,18 @@ class PrintRecorder:
             rospy.Subscriber("/%s/firmware/beads" % arm.name, Float64MultiArray, self._on_rows,
                              callback_args=(self.bead_times, arm.name), queue_size=None)
 
-    def _on_markers(self, msg):
-        with self._lock:
-            for m in msg.markers:
-                if m.action == m.DELETEALL:
-                    self.markers.clear()
-                elif m.action == m.DELETE:
-                    self.markers.pop((m.ns, m.id), None)
-                else:
-                    self.markers[m.ns, m.id] = m
-                    if m.points:
-                        import numpy as np
-                        P = np.array([[p.x, p.y, p.z] for p in m.points])
-                        lo, hi = P.min(axis=0), P.max(axis=0)
-                        self.part_lo = lo if self.part_lo is None else np.minimum(self.part_lo, lo)
-                        self.part_hi = hi if self.part_hi is None else np.maximum(self.part_hi, hi)
-
     def _on_rows(self, msg, where):
         from ambots.ros.firmware import rows_of
         store, name = where
         rows = rows_of(msg)
         with self._lock:
             store.setdefault(name, []).append(rows)
+            if store is self.bead_times and len(rows):       # the nozzle path's box (p0, p1)
+                import numpy as np
+                P = rows[:, 0:6].reshape(-1, 3)
+                lo, hi = P.min(axis=0), P.max(axis=0)
+                self.part_lo = lo if self.part_lo is None else np.minimum(self.part_lo, lo)
+                self.part_hi = hi if self.part_hi is None else np.maximum(self.part_hi, hi)
             key = (id(store), name)
             last = self._row_seq.get(key)
             seq = msg.layout.data_offset

@@ -30,11 +30,13 @@ hub, publishing joint states, the deposit and run statistics.
   robot_state_publisher of the cell turns them into TF (start cell.launch
   with ``publish_home:=false``).
 * :data:`ambots.rviz.DEPOSIT_TOPIC`: visualization_msgs/MarkerArray of
-  LINE_LIST markers (ns = arm name, world frame, the arm's filament
-  colour), one marker per layer of a run (a new marker id after
-  ``max_beads`` beads); beads are the nozzle positions reached (forward
-  kinematics of the executed joint waypoints).  Only changed markers are
-  republished, at most ``marker_rate`` Hz; a new subscriber gets them all.
+  TRIANGLE_LIST markers (ns = arm name, world frame, the arm's filament
+  colour, one colour per triangle: :class:`DepositMarkers`), one marker
+  per layer of a run (a new marker id after ``max_beads`` beads); beads are
+  the nozzle positions reached (forward kinematics of the executed joint
+  waypoints), drawn as shaded tubes (:mod:`ambots.tubes`).  Only changed
+  markers are republished, at most ``marker_rate`` Hz, built outside the
+  loop's lock; a new subscriber gets them all.
 * ``~stats`` (``/<arm>/firmware/stats``, std_msgs/String, latched): JSON
   with the state, line, layer, percent, the runner's :class:`RunStats` and
   what the arm knows of the others, whenever its state or another arm's
@@ -71,7 +73,6 @@ from dataclasses import asdict
 
 import numpy as np
 import rospy
-from geometry_msgs.msg import Point
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
@@ -81,14 +82,17 @@ from ambots import topics
 from ambots.checkpoint import StateStore
 from ambots.clock import ArmReady
 from ambots.collision import ArmBody, bed_clearance, capsule_distances, clearance_between
+from ambots.deposit import bead_area_m2
 from ambots.errors import ProtocolError
 from ambots.motion import MotionPlanner
 from ambots.protocol import (HUB, Ack, ArmState, ClearChunk, LoadChunk, Pause, SendPosition, Start, Status,
                              decode, encode)
 from ambots.reliable import Receiver, Sender, Verdict, seq_seed
 from ambots.ros.driver import DRIVERS, TrajectoryDriver
+from ambots.ros.markers import ArrayMarker, ArrayMarkers
 from ambots.runner import ArmRunner, Bead, RunStats
 from ambots.rviz import DEPOSIT_TOPIC
+from ambots.tubes import SIDES, bead_tubes
 from ambots.units import MM
 
 __all__ = ["parse_speed", "DepositMarkers", "CollisionCheck", "FirmwareNode"]
@@ -110,74 +114,124 @@ def parse_speed(value):
 
 
 class DepositMarkers:
-    """Batches an arm's beads into LINE_LIST markers: one per layer of a
+    """Batches an arm's beads into shaded ``TRIANGLE_LIST`` markers
+    (:mod:`ambots.tubes`: the beads merged into straight segments, each a
+    tube of ``sides`` faces ``height_m`` tall with the bead's cross-section,
+    one colour per face lit by a fixed light): one marker per layer of a
     run, a new one every ``max_beads`` beads.  Marker ids count up over the
-    node's life (a new run never overwrites an earlier deposit).  Not
-    thread-safe: the caller locks."""
+    node's life (a new run never overwrites an earlier deposit).
 
-    def __init__(self, ns, frame, colour, width_m, max_beads=2000):
-        self.ns, self.frame, self.colour, self.width = ns, frame, colour, width_m
-        self.max_beads = max_beads
-        self._markers = {}        # id -> Marker
+    Thread-safe: :meth:`add` and :meth:`take_changed` only copy arrays
+    under an internal lock; :meth:`build` (the triangles and the message,
+    the costly part) runs outside it and keeps the newest build of every
+    marker for :meth:`all`."""
+
+    def __init__(self, ns, frame, colour, height_m, max_beads=2000, sides=SIDES):
+        self.ns, self.frame, self.colour, self.height = ns, frame, tuple(colour), float(height_m)
+        self.max_beads, self.sides = int(max_beads), int(sides)
+        self._lock = threading.Lock()
+        self._beads = {}          # id -> [(K, 8) rows of p0 xyz, p1 xyz, area m^2, G-code line]
+        self._count = {}          # id -> beads in the marker
+        self._version = {}        # id -> changes so far
+        self._built = {}          # id -> (version, Marker), the newest built
         self._open = {}           # layer -> id of the marker still being filled
         self._dirty = set()
         self._next_id = 0
 
     def new_run(self):
         """Beads from now on go to new markers."""
-        self._open.clear()
+        with self._lock:
+            self._open.clear()
 
-    def _marker(self, layer):
+    def _marker_id(self, layer):
         mid = self._open.get(layer)
-        if mid is not None and len(self._markers[mid].points) < 2 * self.max_beads:
-            return self._markers[mid]
-        m = Marker()
-        m.header.frame_id = self.frame
-        m.ns, m.id, m.type, m.action = self.ns, self._next_id, Marker.LINE_LIST, Marker.ADD
-        m.pose.orientation.w = 1.0
-        m.scale.x = self.width
-        m.color.r, m.color.g, m.color.b, m.color.a = (float(c) for c in self.colour)
-        self._markers[m.id] = m
-        self._open[layer] = m.id
+        if mid is not None and self._count[mid] < self.max_beads:
+            return mid
+        mid = self._next_id
         self._next_id += 1
-        return m
+        self._beads[mid], self._count[mid], self._version[mid] = [], 0, 0
+        self._open[layer] = mid
+        return mid
 
     def add(self, bead):
         """One :class:`~ambots.runner.Bead` (K beads, world frame, m)."""
-        p0, p1 = np.asarray(bead.p0, dtype=float), np.asarray(bead.p1, dtype=float)
-        layers = np.asarray(bead.layer)
-        i = 0
-        while i < len(layers):
-            layer = int(layers[i])
-            j = i
-            while j < len(layers) and layers[j] == layer:
-                j += 1
-            while i < j:
-                m = self._marker(layer)
-                take = min(j - i, self.max_beads - len(m.points) // 2)
-                for a, b in zip(p0[i:i + take].tolist(), p1[i:i + take].tolist()):
-                    m.points.append(Point(*a))
-                    m.points.append(Point(*b))
-                self._dirty.add(m.id)
-                i += take
+        p0, p1 = np.asarray(bead.p0, dtype=float).reshape(-1, 3), np.asarray(bead.p1, dtype=float).reshape(-1, 3)
+        rows = np.column_stack([p0, p1, bead_area_m2(p0, p1, bead.e_mm), np.asarray(bead.line, dtype=float)])
+        layers = np.asarray(bead.layer).reshape(-1)
+        bounds = np.r_[0, np.nonzero(layers[1:] != layers[:-1])[0] + 1, len(layers)]
+        with self._lock:
+            for i, j in zip(bounds[:-1].tolist(), bounds[1:].tolist()):      # runs of one layer
+                while i < j:
+                    mid = self._marker_id(int(layers[i]))
+                    take = min(j - i, self.max_beads - self._count[mid])
+                    self._beads[mid].append(rows[i:i + take])
+                    self._count[mid] += take
+                    self._version[mid] += 1
+                    self._dirty.add(mid)
+                    i += take
+
+    def _snapshot(self, ids):
+        """[(id, version, rows)] of markers ``ids``; the caller holds the lock."""
+        out = []
+        for mid in ids:
+            chunks = self._beads[mid]
+            if len(chunks) > 1:
+                chunks[:] = [np.concatenate(chunks)]
+            out.append((mid, self._version[mid], chunks[0] if chunks else np.zeros((0, 8))))
+        return out
+
+    def take_changed(self):
+        """What changed since the last call, for :meth:`build`."""
+        with self._lock:
+            ids = sorted(self._dirty)
+            self._dirty.clear()
+            return self._snapshot(ids)
+
+    def build(self, snapshot, stamp=None):
+        """MarkerArray of a :meth:`take_changed` (or None if empty)."""
+        if not snapshot:
+            return None
+        markers = []
+        for mid, version, rows in snapshot:
+            with self._lock:
+                done = self._built.get(mid)
+            if done is None or done[0] != version:
+                done = (version, self._make(mid, rows))
+                with self._lock:
+                    if mid not in self._built or self._built[mid][0] < version:
+                        self._built[mid] = done
+            markers.append(done[1])
+        if stamp is not None:
+            for m in markers:
+                m.header.stamp = stamp
+        return ArrayMarkers(markers=markers)
+
+    def _make(self, mid, rows):
+        tris, colours = bead_tubes(rows[:, 0:3], rows[:, 3:6], rows[:, 6], self.height, self.colour,
+                                   keys=(rows[:, 7],), sides=self.sides)
+        # one colour per triangle (RViz draws them unlit, see ambots.tubes)
+        m = ArrayMarker(xyz=tris.reshape(-1, 3), rgba=colours)
+        m.header.frame_id = self.frame
+        m.ns, m.id, m.type, m.action = self.ns, mid, Marker.TRIANGLE_LIST, Marker.ADD
+        m.pose.orientation.w = 1.0
+        m.scale.x = m.scale.y = m.scale.z = 1.0
+        m.color.r, m.color.g, m.color.b, m.color.a = (float(c) for c in self.colour)
+        return m
 
     def changed(self, stamp=None):
         """MarkerArray of the markers changed since the last call (or None)."""
-        if not self._dirty:
-            return None
-        out = MarkerArray(markers=[self._markers[i] for i in sorted(self._dirty)])
-        self._dirty.clear()
-        if stamp is not None:
-            for m in out.markers:
-                m.header.stamp = stamp
-        return out
+        return self.build(self.take_changed(), stamp)
 
     def all(self):
-        return MarkerArray(markers=[self._markers[i] for i in sorted(self._markers)])
+        """MarkerArray of every marker so far (or None)."""
+        with self._lock:
+            snap = self._snapshot(sorted(self._beads))
+        return self.build(snap)
 
     @property
     def n_beads(self):
-        return sum(len(m.points) for m in self._markers.values()) // 2
+        with self._lock:
+            return sum(self._count.values())
 
 
 class CollisionCheck:
@@ -250,7 +304,7 @@ class FirmwareNode:
     """
 
     def __init__(self, arm, cell, rate=50.0, report_period=1.0,
-                 marker_rate=4.0, bead_width_mm=0.45, clearance_mm=5.0, max_beads=2000,
+                 marker_rate=4.0, bead_height_mm=None, clearance_mm=5.0, max_beads=2000,
                  retry_period=0.05, max_tries=None, state_dir=None, run_id="", slowdown=1.0,
                  driver="sim", chunk_duration=0.5, command_delay=0.3, progress_tie=True):
         self.arm, self.cell = arm, cell
@@ -268,7 +322,10 @@ class FirmwareNode:
         self.receiver = Receiver(arm.id)
         self._commands = queue.Queue()
         self._wake = threading.Event()        # a command arrived: the loop need not finish its tick
-        self.markers = DepositMarkers(arm.name, cell.world_frame, arm.profile.colour, bead_width_mm * MM,
+        if bead_height_mm is None:             # the layer height the deposit (ambots.deposit) is built with
+            from ambots.slicer import SliceSettings
+            bead_height_mm = SliceSettings().layer_height_mm
+        self.markers = DepositMarkers(arm.name, cell.world_frame, arm.profile.colour, bead_height_mm * MM,
                                       max_beads)
         self.sim_now = 0.0
         self._clock_now = 0.0                 #: the latest instant received on /clock
@@ -500,7 +557,7 @@ class FirmwareNode:
                                                    (changed and wall >= next_checkpoint)):
                         self._checkpoint()
                         next_checkpoint = wall + self.checkpoint_period
-                    markers = self.markers.changed(rospy.Time.now()) if wall >= next_markers else None
+                    markers = self.markers.take_changed() if wall >= next_markers else None
                     stats = self._stats_json() if (state != last_state or peers_changed or
                                                    (state is ArmState.PRINTING and out)) else None
             except Exception as exc:          # noqa: BLE001 -- a bug: say why, and stop the node
@@ -546,9 +603,9 @@ class FirmwareNode:
                             q = measured
                     self._js.position = [float(v) for v in q]
                     self._joints.publish(self._js)
-                if markers is not None:
+                if markers:                   # built out of the lock: the triangles take a while
                     next_markers = wall + self.marker_period
-                    self._deposit.publish(markers)
+                    self._deposit.publish(self.markers.build(markers, rospy.Time.now()))
                 if stats is not None:
                     self._stats.publish(String(stats))
                     if state is not last_state:      # barriers come and go: not worth a line each
@@ -671,12 +728,11 @@ class FirmwareNode:
         })
 
     def publish_all_markers(self, publish):
-        """Every marker so far, through ``publish(MarkerArray)`` (serialised
-        under the lock: the loop appends to the markers)."""
-        with self.lock:
-            markers = self.markers.all()
-            if markers.markers:
-                publish(markers)
+        """Every marker so far, through ``publish(MarkerArray)`` (the markers
+        lock themselves; the loop goes on meanwhile)."""
+        markers = self.markers.all()
+        if markers is not None:
+            publish(markers)
 
 
 def _rows(a, seq=0):
