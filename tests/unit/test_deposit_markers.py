@@ -54,11 +54,19 @@ def test_array_marker_bytes_equal_a_plain_markers(n_colours):
     assert a.n_bytes == len(_bytes(plain))
 
 
-def test_array_marker_refuses_points_as_objects():
-    a = ArrayMarker(xyz=np.zeros((3, 3)))
-    a.points = [Point()]
-    with pytest.raises(ValueError):
-        _bytes(a)
+def test_array_marker_reads_and_writes_points_as_objects_too():
+    xyz = np.arange(9.0).reshape(3, 3)
+    a = ArrayMarker(xyz=xyz, rgba=[(0.5, 0.25, 0.0, 1.0)], type=Marker.TRIANGLE_LIST)
+    assert [(p.x, p.y, p.z) for p in a.points] == [tuple(r) for r in xyz.tolist()]
+    assert [(c.r, c.g, c.b, c.a) for c in a.colors] == [(0.5, 0.25, 0.0, 1.0)]
+    # in a plain MarkerArray (inline serialisation) the points still go out
+    got = _read(MarkerArray(markers=[a])).markers[0]
+    np.testing.assert_array_equal(_xyz(got), xyz)
+    assert len(got.colors) == 1
+    b = ArrayMarker()
+    b.points = [Point(1, 2, 3)]
+    np.testing.assert_array_equal(b.xyz, [[1, 2, 3]])
+    assert ArrayMarker().points == [] and ArrayMarker().xyz.shape == (0, 3)
 
 
 def _square(z, side=0.02, per_side=8, line0=1):
@@ -144,3 +152,61 @@ def test_marker_bytes_per_bead_segment():
     empty = ArrayMarker(xyz=np.zeros((0, 3)))
     empty.header, empty.ns, empty.type = m.header, m.ns, m.type
     assert m.n_bytes - empty.n_bytes == 4 * 12 * (3 * 24 + 16)
+
+
+def _block_layer(z, layer, per_line=4):
+    """Beads of one solid layer 20 x 4 mm at nozzle height z: the outline
+    (G-code lines 0-3), then lines along x 0.4 mm apart (one G-code line
+    each), every line laid as ``per_line`` beads."""
+    c = [(0, 0), (0.02, 0), (0.02, 0.004), (0, 0.004), (0, 0)]
+    lines = list(zip(c[:-1], c[1:])) + [((4e-4, y), (0.02 - 4e-4, y)) for y in np.arange(4e-4, 0.0038, 4e-4)]
+    p0, p1, line = [], [], []
+    for k, (a, b) in enumerate(lines):
+        P = np.linspace(np.r_[a, z], np.r_[b, z], per_line + 1)
+        p0.append(P[:-1]), p1.append(P[1:]), line.append(np.full(per_line, k))
+    p0, p1, line = np.concatenate(p0), np.concatenate(p1), np.concatenate(line)
+    e_mm = 0.08 * np.linalg.norm(p1 - p0, axis=1) * 1e3 / FILAMENT_AREA_MM2       # 0.4 x 0.2 mm
+    return _bead(p0, p1, e_mm, line, layer)
+
+
+def test_buried_segments_are_left_out_and_fully_buried_markers_deleted():
+    # 5 layers; a marker holds at most 16 beads: each layer's outline (4 lines x 4 beads) is one
+    # marker, its infill (9 lines) two or three more
+    dm = DepositMarkers("ur10", "world", COLOUR, H, max_beads=16, floor_z=0.0)
+    for k in range(5):
+        dm.add(_block_layer(H * (k + 1), k))
+    before = _read(dm.changed())
+    assert all(len(m.points) for m in before.markers)           # no exposure found yet: all drawn
+    n_before = sum(len(m.points) for m in before.markers) // 3
+    assert n_before == 5 * 13 * 12
+    assert dm.update_exposure(force=True)
+    assert not dm.update_exposure(force=True)                     # no new beads: nothing to do
+    after = {(m.id): m for m in _read(dm.changed()).markers}
+    every = {m.id: m for m in _read(dm.all()).markers}
+    # the top layer and every outline stay whole; the infill under the top is gone
+    for mid, m in every.items():
+        P = _xyz(m)
+        top = len(P) and P[:, 2].max() > 4.5 * H
+        outline = len(P) and (np.isclose(P[:, 1], 0, atol=4e-4) | np.isclose(P[:, 1], 0.004, atol=4e-4)).any()
+        if m.action == Marker.DELETE:
+            assert mid in after and not top and len(P) == 0
+        else:
+            assert top or outline, "a buried marker is still drawn"
+    deleted = [m for m in every.values() if m.action == Marker.DELETE]
+    assert len(deleted) >= 4 * 2                                  # the infill markers of layers 0-3
+    n_after = sum(len(m.points) for m in every.values()) // 3
+    assert n_after == (4 * 4 + 13) * 12                            # outlines of 4 layers + the whole top
+    # a new layer on top: the old top is buried at the next update, the new one drawn
+    dm.add(_block_layer(H * 6, 5))
+    dm.update_exposure(force=True)
+    n_final = sum(len(m.points) for m in _read(dm.all()).markers) // 3
+    assert n_final == (5 * 4 + 13) * 12
+
+
+def test_exposure_waits_for_its_period():
+    dm = DepositMarkers("ur10", "world", COLOUR, H, exposure_period=10.0)
+    dm.add(_block_layer(H, 0))
+    assert dm.update_exposure(now=100.0)
+    dm.add(_block_layer(2 * H, 1))
+    assert not dm.update_exposure(now=105.0)
+    assert dm.update_exposure(now=110.5)

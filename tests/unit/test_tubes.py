@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ambots.deposit import bead_area_m2, bead_boxes
-from ambots.tubes import LIGHT, bead_tubes, face_normals, merge_beads, section, shade, tube_triangles
+from ambots.tubes import LIGHT, bead_tubes, exposed, face_normals, merge_beads, section, shade, tube_triangles
 
 
 def _cut(tris, point, normal, along=False):
@@ -208,3 +208,65 @@ def test_bead_tubes_counts_and_drops_empty_beads():
     tris, colours = bead_tubes(p0, p1, area, 0.2e-3, (0.2, 0.4, 1.0), sides=6)
     # beads 0 and 2-3: bead 0 alone, 2 and 3 merged -> 2 segments, 12 triangles each
     assert tris.shape == (2 * 12, 3, 3) and colours.shape == (24, 4)
+
+
+def _layer(z, x0=0.0, x1=0.02, y0=0.0, y1=0.004, spacing=0.4e-3, infill_gap=None):
+    """Segments of one layer at nozzle height z: the outline (4 segments,
+    counter-clockwise), then lines along x inside it, ``spacing`` apart
+    (solid) or ``infill_gap`` apart (sparse)."""
+    c = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]])
+    s, e = list(c[:-1]), list(c[1:])
+    gap = infill_gap or spacing
+    for y in np.arange(y0 + spacing, y1 - spacing / 2, gap):
+        s.append([x0 + spacing, y])
+        e.append([x1 - spacing, y])
+    s, e = np.array(s), np.array(e)
+    return np.c_[s, np.full(len(s), z)], np.c_[e, np.full(len(e), z)]
+
+
+def _stack(layers, h=0.2e-3, **kw):
+    """(starts, ends, layer index, is-outline) of layers given as dicts of _layer keywords."""
+    S, E, lay, outline = [], [], [], []
+    for k, opts in enumerate(layers):
+        s, e = _layer(h * (k + 1), **dict(kw, **opts))
+        S.append(s), E.append(e), lay.append(np.full(len(s), k)), outline.append(np.arange(len(s)) < 4)
+    return np.concatenate(S), np.concatenate(E), np.concatenate(lay), np.concatenate(outline)
+
+
+AREA = 0.4e-3 * 0.2e-3          # a bead as wide as the spacing of the lines: a solid layer
+
+
+def test_exposed_finds_the_beads_buried_in_a_solid_block():
+    s, e, lay, outline = _stack([{}] * 6)
+    top = lay == lay.max()
+    vis = exposed(s, e, AREA, 0.2e-3, floor_z=0.0)
+    assert vis[outline].all() and vis[top].all()            # the walls and the top are seen
+    assert not vis[~outline & ~top].any()                     # everything under them is not
+    # open below (no bed): the bottom layer is seen from under it too
+    vis = exposed(s, e, AREA, 0.2e-3)
+    assert vis[lay == 0].all() and not vis[~outline & (lay > 0) & ~top].any()
+
+
+def test_exposed_sees_into_a_cavity_until_it_is_closed():
+    sparse = {"infill_gap": 2e-3}
+    closed = [{}] + [sparse] * 5 + [{}]                     # a solid floor, sparse infill, a solid roof
+    s, e, lay, outline = _stack(closed, y1=0.008)
+    vis = exposed(s, e, AREA, 0.2e-3, floor_z=0.0)
+    inside = ~outline & (lay > 0) & (lay < 6)
+    assert inside.sum() > 10 and not vis[inside].any()
+    assert vis[lay == 6].all() and vis[outline].all()
+    # without the roof the infill is seen from above, and the floor's top through its gaps
+    s, e, lay, outline = _stack(closed[:-1], y1=0.008)
+    vis = exposed(s, e, AREA, 0.2e-3, floor_z=0.0)
+    assert vis[~outline & (lay > 0)].all()
+    # the floor's lines are seen where no infill line lies right on top of them
+    floor = ~outline & (lay == 0)
+    y_infill = s[~outline & (lay == 1), 1]
+    under = np.isin(np.round(s[floor, 1], 9), np.round(y_infill, 9))
+    assert under.sum() == len(y_infill) == 4
+    assert vis[floor].tolist() == (~under).tolist()
+
+
+def test_exposed_single_and_none():
+    assert exposed(np.zeros((0, 3)), np.zeros((0, 3)), AREA, 0.2e-3).shape == (0,)
+    assert exposed([[0, 0, 2e-4]], [[0.01, 0, 2e-4]], AREA, 0.2e-3, floor_z=0.0).tolist() == [True]

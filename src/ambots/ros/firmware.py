@@ -92,7 +92,7 @@ from ambots.ros.driver import DRIVERS, TrajectoryDriver
 from ambots.ros.markers import ArrayMarker, ArrayMarkers
 from ambots.runner import ArmRunner, Bead, RunStats
 from ambots.rviz import DEPOSIT_TOPIC
-from ambots.tubes import SIDES, bead_tubes
+from ambots.tubes import SIDES, exposed, face_normals, merge_beads, shade, tube_triangles
 from ambots.units import MM
 
 __all__ = ["parse_speed", "DepositMarkers", "CollisionCheck", "FirmwareNode"]
@@ -121,22 +121,34 @@ class DepositMarkers:
     run, a new one every ``max_beads`` beads.  Marker ids count up over the
     node's life (a new run never overwrites an earlier deposit).
 
-    Thread-safe: :meth:`add` and :meth:`take_changed` only copy arrays
-    under an internal lock; :meth:`build` (the triangles and the message,
-    the costly part) runs outside it and keeps the newest build of every
-    marker for :meth:`all`."""
+    Segments buried in the deposit (:func:`ambots.tubes.exposed` over all
+    of the arm's beads, the bed's top ``floor_z`` closing it from below)
+    are left out: :meth:`update_exposure` finds them again at most every
+    ``exposure_period`` s, and the markers whose set changed are sent
+    again.  Until then (and for segments laid since) everything is drawn.
 
-    def __init__(self, ns, frame, colour, height_m, max_beads=2000, sides=SIDES):
+    Thread-safe: :meth:`add` and :meth:`take_changed` only copy arrays
+    under an internal lock; :meth:`build` (the triangles and the message)
+    and :meth:`update_exposure` run outside it; the newest build of every
+    marker is kept for :meth:`all`."""
+
+    def __init__(self, ns, frame, colour, height_m, max_beads=2000, sides=SIDES, floor_z=None,
+                 exposure_period=10.0, cell_m=4e-4):
         self.ns, self.frame, self.colour, self.height = ns, frame, tuple(colour), float(height_m)
         self.max_beads, self.sides = int(max_beads), int(sides)
+        self.floor_z, self.exposure_period, self.cell = floor_z, float(exposure_period), float(cell_m)
         self._lock = threading.Lock()
         self._beads = {}          # id -> [(K, 8) rows of p0 xyz, p1 xyz, area m^2, G-code line]
         self._count = {}          # id -> beads in the marker
-        self._version = {}        # id -> changes so far
+        self._version = {}        # id -> changes of the marker's look so far (beads, exposure)
+        self._shown = {}          # id -> (beads, (M,) bool over the merge of those beads), or None: all
+        self._merged = {}         # id -> (beads, starts, ends, area): the merge of its first beads
         self._built = {}          # id -> (version, Marker), the newest built
         self._open = {}           # layer -> id of the marker still being filled
         self._dirty = set()
         self._next_id = 0
+        self._exposure_at = -math.inf
+        self._exposure_of = None  # the bead counts the last exposure was found for
 
     def new_run(self):
         """Beads from now on go to new markers."""
@@ -149,7 +161,7 @@ class DepositMarkers:
             return mid
         mid = self._next_id
         self._next_id += 1
-        self._beads[mid], self._count[mid], self._version[mid] = [], 0, 0
+        self._beads[mid], self._count[mid], self._version[mid], self._shown[mid] = [], 0, 0, None
         self._open[layer] = mid
         return mid
 
@@ -171,13 +183,13 @@ class DepositMarkers:
                     i += take
 
     def _snapshot(self, ids):
-        """[(id, version, rows)] of markers ``ids``; the caller holds the lock."""
+        """[(id, version, rows, shown)] of markers ``ids``; the caller holds the lock."""
         out = []
         for mid in ids:
             chunks = self._beads[mid]
             if len(chunks) > 1:
                 chunks[:] = [np.concatenate(chunks)]
-            out.append((mid, self._version[mid], chunks[0] if chunks else np.zeros((0, 8))))
+            out.append((mid, self._version[mid], chunks[0] if chunks else np.zeros((0, 8)), self._shown[mid]))
         return out
 
     def take_changed(self):
@@ -187,16 +199,58 @@ class DepositMarkers:
             self._dirty.clear()
             return self._snapshot(ids)
 
+    def _segments(self, mid, rows):
+        """The marker's beads merged into segments (cached for the same beads)."""
+        with self._lock:
+            done = self._merged.get(mid)
+        if done is None or done[0] != len(rows):
+            s, e, a, _ = merge_beads(rows[:, 0:3], rows[:, 3:6], rows[:, 6], keys=(rows[:, 7],))
+            keep = a > 0
+            done = (len(rows), s[keep], e[keep], a[keep])
+            with self._lock:
+                if mid not in self._merged or self._merged[mid][0] < len(rows):
+                    self._merged[mid] = done
+        return done[1:]
+
+    def update_exposure(self, now=None, force=False):
+        """Find the buried segments again (every ``exposure_period`` s of
+        ``now``, wall clock, when beads came since; ``force``: now).  Returns
+        whether it ran."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            counts = dict(self._count)
+            if counts == self._exposure_of or (not force and now - self._exposure_at < self.exposure_period):
+                return False
+            self._exposure_at, self._exposure_of = now, counts
+            snap = self._snapshot(sorted(self._beads))
+        parts = [(mid, len(rows), self._segments(mid, rows)) for mid, _, rows, _ in snap]
+        if not parts:
+            return True
+        starts, ends, area = (np.concatenate([p[k] for _, _, p in parts]) for k in range(3))
+        shown = exposed(starts, ends, area, self.height, cell=self.cell, floor_z=self.floor_z, sides=self.sides)
+        cut = np.cumsum([len(p[0]) for _, _, p in parts])[:-1]
+        with self._lock:
+            for (mid, n, _), mask in zip(parts, np.split(shown, cut)):
+                new = None if mask.all() else (n, mask)
+                old = self._shown.get(mid)
+                if (old is None and new is None) or (old is not None and new is not None and old[0] == n
+                                                     and np.array_equal(old[1], mask)):
+                    continue
+                self._shown[mid] = new
+                self._version[mid] += 1
+                self._dirty.add(mid)
+        return True
+
     def build(self, snapshot, stamp=None):
         """MarkerArray of a :meth:`take_changed` (or None if empty)."""
         if not snapshot:
             return None
         markers = []
-        for mid, version, rows in snapshot:
+        for mid, version, rows, shown in snapshot:
             with self._lock:
                 done = self._built.get(mid)
             if done is None or done[0] != version:
-                done = (version, self._make(mid, rows))
+                done = (version, self._make(mid, rows, shown))
                 with self._lock:
                     if mid not in self._built or self._built[mid][0] < version:
                         self._built[mid] = done
@@ -206,13 +260,22 @@ class DepositMarkers:
                 m.header.stamp = stamp
         return ArrayMarkers(markers=markers)
 
-    def _make(self, mid, rows):
-        tris, colours = bead_tubes(rows[:, 0:3], rows[:, 3:6], rows[:, 6], self.height, self.colour,
-                                   keys=(rows[:, 7],), sides=self.sides)
+    def _make(self, mid, rows, shown):
+        s, e, a = self._segments(mid, rows)
+        if shown is not None:             # buried segments out
+            n_beads, mask = shown
+            keep = np.ones(len(s), dtype=bool)
+            # beads laid since: the segments they made and the last one they may have extended stay in
+            n = min(len(mask) if n_beads == len(rows) else len(mask) - 1, len(s))
+            keep[:n] = mask[:n]
+            s, e, a = s[keep], e[keep], a[keep]
+        tris = tube_triangles(s, e, a, self.height, self.sides)
         # one colour per triangle (RViz draws them unlit, see ambots.tubes)
-        m = ArrayMarker(xyz=tris.reshape(-1, 3), rgba=colours)
+        m = ArrayMarker(xyz=tris.reshape(-1, 3), rgba=shade(face_normals(tris), self.colour))
         m.header.frame_id = self.frame
-        m.ns, m.id, m.type, m.action = self.ns, mid, Marker.TRIANGLE_LIST, Marker.ADD
+        # nothing left to draw (all buried): RViz drops the marker (an empty one is an error there)
+        m.ns, m.id, m.type = self.ns, mid, Marker.TRIANGLE_LIST
+        m.action = Marker.ADD if len(tris) else Marker.DELETE
         m.pose.orientation.w = 1.0
         m.scale.x = m.scale.y = m.scale.z = 1.0
         m.color.r, m.color.g, m.color.b, m.color.a = (float(c) for c in self.colour)
@@ -325,8 +388,9 @@ class FirmwareNode:
         if bead_height_mm is None:             # the layer height the deposit (ambots.deposit) is built with
             from ambots.slicer import SliceSettings
             bead_height_mm = SliceSettings().layer_height_mm
+        # nothing is seen from under the bed: its top closes the deposit from below
         self.markers = DepositMarkers(arm.name, cell.world_frame, arm.profile.colour, bead_height_mm * MM,
-                                      max_beads)
+                                      max_beads, floor_z=float(cell.bed.pose[2, 3]))
         self.sim_now = 0.0
         self._clock_now = 0.0                 #: the latest instant received on /clock
         self.slowdown = float(slowdown)       # > 1: this arm's motion takes that much longer (fault tests)
@@ -557,7 +621,6 @@ class FirmwareNode:
                                                    (changed and wall >= next_checkpoint)):
                         self._checkpoint()
                         next_checkpoint = wall + self.checkpoint_period
-                    markers = self.markers.take_changed() if wall >= next_markers else None
                     stats = self._stats_json() if (state != last_state or peers_changed or
                                                    (state is ArmState.PRINTING and out)) else None
             except Exception as exc:          # noqa: BLE001 -- a bug: say why, and stop the node
@@ -603,9 +666,12 @@ class FirmwareNode:
                             q = measured
                     self._js.position = [float(v) for v in q]
                     self._joints.publish(self._js)
-                if markers:                   # built out of the lock: the triangles take a while
-                    next_markers = wall + self.marker_period
-                    self._deposit.publish(self.markers.build(markers, rospy.Time.now()))
+                if wall >= next_markers:      # out of the loop's lock: the markers lock themselves
+                    self.markers.update_exposure(wall)
+                    markers = self.markers.changed(rospy.Time.now())
+                    if markers is not None:
+                        next_markers = wall + self.marker_period
+                        self._deposit.publish(markers)
                 if stats is not None:
                     self._stats.publish(String(stats))
                     if state is not last_state:      # barriers come and go: not worth a line each

@@ -9,12 +9,16 @@ is written by ``Marker.serialize`` itself, so the bytes are exactly those of
 a ``visualization_msgs/Marker`` with the same points and colours (the unit
 tests compare them).  :class:`ArrayMarkers` is a ``MarkerArray`` that
 serialises each marker with its own ``serialize`` (the generated one writes
-the markers' fields inline, which would skip the arrays).  Subscribers see
-ordinary messages."""
+the markers' fields inline).  ``points`` and ``colors`` still read and
+write as lists of objects (built from the arrays, slowly), so an
+ArrayMarker in a plain MarkerArray, or code that reads ``points``, still
+gets the right values.  Subscribers see ordinary messages."""
 import struct
 from io import BytesIO
 
 import numpy as np
+from geometry_msgs.msg import Point
+from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
 __all__ = ["ArrayMarker", "ArrayMarkers"]
@@ -22,21 +26,45 @@ __all__ = ["ArrayMarker", "ArrayMarkers"]
 _OTHER_FIELDS = [f for f in Marker.__slots__ if f not in ("points", "colors")]
 
 
+def _xyz(value):
+    return np.ascontiguousarray(value, dtype="<f8").reshape(-1, 3)
+
+
+def _rgba(value):
+    return np.ascontiguousarray(value, dtype="<f4").reshape(-1, 4)
+
+
 class ArrayMarker(Marker):
-    """A Marker with ``xyz`` (N, 3) and ``rgba`` (M, 4; M = 0, N or N / 3
-    for a ``TRIANGLE_LIST``) arrays in place of ``points`` and ``colors``
-    (which stay empty).  Not for in-process readers of ``points``: it is
-    meant to be published."""
+    """A Marker whose points and colours are the arrays ``xyz`` (N, 3) and
+    ``rgba`` (M, 4; M = 0, N or N / 3 for a ``TRIANGLE_LIST``)."""
 
     def __init__(self, *args, xyz=None, rgba=None, **kwds):
         super().__init__(*args, **kwds)
-        self.xyz = np.zeros((0, 3)) if xyz is None else np.ascontiguousarray(xyz, dtype="<f8").reshape(-1, 3)
-        self.rgba = np.zeros((0, 4), "<f4") if rgba is None else \
-            np.ascontiguousarray(rgba, dtype="<f4").reshape(-1, 4)
+        if xyz is not None:
+            self.xyz = _xyz(xyz)
+        if rgba is not None:
+            self.rgba = _rgba(rgba)
+
+    xyz = np.zeros((0, 3))
+    rgba = np.zeros((0, 4), "<f4")
+
+    @property
+    def points(self):
+        return [Point(*p) for p in self.xyz.tolist()]
+
+    @points.setter
+    def points(self, value):
+        self.xyz = _xyz([(p.x, p.y, p.z) for p in value or ()])
+
+    @property
+    def colors(self):
+        return [ColorRGBA(*c) for c in self.rgba.tolist()]
+
+    @colors.setter
+    def colors(self, value):
+        self.rgba = _rgba([(c.r, c.g, c.b, c.a) for c in value or ()])
 
     def serialize(self, buff):
-        if self.points or self.colors:
-            raise ValueError("ArrayMarker %s/%d: points and colors go in xyz and rgba" % (self.ns, self.id))
         # the other fields, by the generated code, from a plain Marker (thread-safe: self is not touched)
         head = BytesIO()
         Marker(**{f: getattr(self, f) for f in _OTHER_FIELDS}).serialize(head)
