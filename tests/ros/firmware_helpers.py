@@ -10,7 +10,7 @@ import numpy as np
 import rosgraph
 import rospy
 from sensor_msgs.msg import JointState
-from std_msgs.msg import String
+from std_msgs.msg import Float64MultiArray, String
 from visualization_msgs.msg import MarkerArray
 
 from ambots import topics
@@ -95,7 +95,8 @@ class FrontEnd:
 
 class Recorder:
     """What the firmware nodes publish: deposit markers (latest by (ns, id)),
-    joint states per arm, stats per arm (latest JSON), the hub's error lines."""
+    the beads laid (``~beads`` rows: p0, p1, time, filament), joint states
+    per arm, stats per arm (latest JSON), the hub's error lines."""
 
     def __init__(self, cell):
         self.cell = cell
@@ -103,6 +104,7 @@ class Recorder:
         self.markers = {}
         self.joints = {a.name: [] for a in cell.arms}
         self.stats = {a.name: None for a in cell.arms}
+        self.beads = {a.name: [] for a in cell.arms}
         self.errors = []
         self.subs = [rospy.Subscriber(DEPOSIT_TOPIC, MarkerArray, self._on_markers, queue_size=100)]
         for arm in cell.arms:
@@ -110,6 +112,8 @@ class Recorder:
                                               self._on_joints, callback_args=arm, queue_size=100))
             self.subs.append(rospy.Subscriber(topics.arm_node(arm.name) + "/stats", String,
                                               self._on_stats, callback_args=arm.name, queue_size=10))
+            self.subs.append(rospy.Subscriber(topics.arm_node(arm.name) + "/beads", Float64MultiArray,
+                                              self._on_beads, callback_args=arm.name, queue_size=None))
         self.subs.append(rospy.Subscriber(topics.ERROR_TOPIC, String, self._on_error, queue_size=100))
 
     def _on_markers(self, msg):
@@ -125,6 +129,12 @@ class Recorder:
             return
         with self._lock:
             self.joints[arm.name].append(np.array(q))
+
+    def _on_beads(self, msg, name):
+        from ambots.ros.firmware import rows_of
+        rows = rows_of(msg)
+        with self._lock:
+            self.beads[name].extend(rows)
 
     def _on_stats(self, msg, name):
         with self._lock:
@@ -142,8 +152,19 @@ class Recorder:
         with self._lock:
             return self.markers[ns, mid]
 
+    def n_beads(self, name):
+        with self._lock:
+            return len(self.beads[name])
+
+    def bead_path(self, name, start=0):
+        """(p0 (K, 3), p1 (K, 3)) world m of the beads ``name`` laid, from the ``start``-th on."""
+        with self._lock:
+            rows = np.array(self.beads[name][start:], dtype=float).reshape(-1, 8)
+        return rows[:, 0:3], rows[:, 3:6]
+
     def points(self, ns, ids):
-        """(N, 3) points of markers ``ids`` of ``ns``, in id order."""
+        """(N, 3) points of markers ``ids`` of ``ns``, in id order (a
+        TRIANGLE_LIST: three per triangle)."""
         with self._lock:
             pts = [[(p.x, p.y, p.z) for p in self.markers[ns, i].points] for i in sorted(ids)]
         return np.array([p for ps in pts for p in ps], dtype=float).reshape(-1, 3)

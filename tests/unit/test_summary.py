@@ -39,7 +39,12 @@ def test_a_finished_print_says_makespan_speed_up_and_where_the_files_are(tmp_pat
     assert "also considered: kinova alone 7,500 s; ur10 alone 7,000 s" in out
     assert "contacts      0" in out and "closest approach of two arms 12.3 mm" in out
     assert str(tmp_path / "capture.png") in out and str(tmp_path / "report.json") in out
+    assert "close-up" not in out
     assert len(out.splitlines()) <= 8          # short
+    (tmp_path / "capture_closeup.png").write_bytes(b"\x89PNG not really")
+    code, out = _run(tmp_path, None, None, True, "--capture")
+    assert "picture       %s, close-up %s" % (tmp_path / "capture.png", tmp_path / "capture_closeup.png") in out
+    assert len(out.splitlines()) <= 8
 
 
 def test_one_arm_chosen_is_said_so(tmp_path):

@@ -1,8 +1,8 @@
 """``python -m ambots summary DIR``: a finished run in a few lines for people.
 
 Reads what a run wrote into DIR (``report.json``, ``job.json``,
-``capture.png``) -- `make demo`, `make print` and `python -m ambots plan`
-write them -- and exits 0 only when the print finished with no contact and,
+``capture.png``, and ``capture_closeup.png`` if there) -- `make demo`,
+`make print` and `python -m ambots plan` write them -- and exits 0 only when the print finished with no contact and,
 for a live run, the capture is there."""
 import json
 import os
@@ -94,7 +94,9 @@ def summary_lines(out_dir, capture=False):
     else:
         lines.append("  contacts      NOT CHECKED (no executed motion was received)")
     if capture:
-        lines.append("  picture       %s" % (png if has_png else "MISSING (%s)" % png))
+        closeup = os.path.join(out_dir, "capture_closeup.png")
+        lines.append("  picture       %s%s" % (png if has_png else "MISSING (%s)" % png,
+                                             ", close-up %s" % closeup if os.path.isfile(closeup) else ""))
     lines.append("  report        %s (also %s)" % (
         os.path.join(out_dir, "report.json"),
         ", ".join(f for f in ("deposit.ply", "job.json") if os.path.exists(os.path.join(out_dir, f)))

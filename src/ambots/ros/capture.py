@@ -21,12 +21,16 @@ def rviz_executable():
 
 class HeadlessRviz:
     """Starts Xvfb (a free display number) and RViz with ``config``; use as a
-    context manager.  :meth:`grab` saves a PNG of RViz's 3D view."""
+    context manager.  :meth:`grab` saves a PNG of RViz's 3D view.  ``env``:
+    more environment variables for RViz (e.g. Mesa's ``GALLIUM_HUD``);
+    ``log``: a file for what RViz prints (default: nowhere)."""
 
-    def __init__(self, config, size=(1280, 800), node_name="capture_rviz"):
-        self.config, self.size, self.node_name = config, size, node_name
+    def __init__(self, config, size=(1280, 800), node_name="capture_rviz", env=None, log=None):
+        self.config, self.size, self.node_name, self.extra_env = config, size, node_name, dict(env or {})
+        self.log = log
         self.xvfb = self.rviz = None
         self.display = None
+        self.box = None           #: the 3D view's box on the screen (left, top, right, bottom), by grab()
 
     def __enter__(self):
         r, w = os.pipe()
@@ -36,10 +40,14 @@ class HeadlessRviz:
         os.close(w)
         with os.fdopen(r) as f:
             self.display = ":" + f.readline().strip()
-        env = dict(os.environ, DISPLAY=self.display)
-        self.rviz = subprocess.Popen([rviz_executable(), "-d", self.config,
-                                      "__name:=" + self.node_name],
-                                     env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        env = dict(os.environ, DISPLAY=self.display, **self.extra_env)
+        out = open(self.log, "a") if self.log else subprocess.DEVNULL
+        try:
+            self.rviz = subprocess.Popen([rviz_executable(), "-d", self.config, "__name:=" + self.node_name],
+                                         env=env, stdout=out, stderr=subprocess.STDOUT if self.log else out)
+        finally:
+            if self.log:
+                out.close()
         return self
 
     def wait_ready(self, timeout=60.0, settle=4.0):
@@ -55,16 +63,43 @@ class HeadlessRviz:
             time.sleep(0.5)
         raise RuntimeError("rviz did not come up within %.0f s" % timeout)
 
-    def grab(self, path, background=(48, 48, 48)):
-        """Save a PNG of the 3D view (the area of RViz's background colour)."""
-        import numpy as np
+    def wait_still(self, box=None, period=1.0, timeout=40.0):
+        """Until two pictures of ``box`` (the 3D view: RViz's status bar
+        shows its changing frame rate) ``period`` s apart are the same (a
+        still scene fully drawn), at most ``timeout`` s; returns whether it
+        got there."""
+        def picture():
+            img = self.screen()
+            return (img.crop(box) if box else img).tobytes()
+        deadline = time.time() + timeout
+        last = picture()
+        while time.time() < deadline and not rospy.is_shutdown():
+            time.sleep(period)
+            now = picture()
+            if now == last:
+                return True
+            last = now
+        return False
+
+    def screen(self):
+        """The whole virtual screen (PIL image)."""
         from PIL import ImageGrab
-        img = ImageGrab.grab(xdisplay=self.display)
-        a = np.asarray(img.convert("RGB"))
-        bg = np.all(a == background, axis=2)
-        rows, cols = np.where(bg.mean(axis=1) > 0.2)[0], np.where(bg.mean(axis=0) > 0.2)[0]
-        if len(rows) and len(cols):
-            img = img.crop((cols[0], rows[0], cols[-1] + 1, rows[-1] + 1))
+        return ImageGrab.grab(xdisplay=self.display)
+
+    def grab(self, path, background=(48, 48, 48), box=None):
+        """Save a PNG of the 3D view: ``box`` (left, top, right, bottom), or
+        the area of RViz's background colour (kept in :attr:`box`)."""
+        import numpy as np
+        img = self.screen()
+        if box is None:
+            a = np.asarray(img.convert("RGB"))
+            bg = np.all(a == background, axis=2)
+            rows, cols = np.where(bg.mean(axis=1) > 0.2)[0], np.where(bg.mean(axis=0) > 0.2)[0]
+            if len(rows) and len(cols):
+                box = (int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1)
+        if box is not None:
+            img = img.crop(box)
+        self.box = box
         os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
         img.save(path)
         return path
@@ -91,8 +126,9 @@ def _latest_copy(rows, col=0):
 
 
 class PrintRecorder:
-    """Watches a live print: the deposit markers (for the bead mesh), every
-    arm's joint states (arm-arm clearance with the capsule model, for pairs
+    """Watches a live print: the beads every firmware laid (``~beads`` rows:
+    the bead mesh, and the part's box for the arm-part check), every arm's
+    joint states (arm-arm clearance with the capsule model, for pairs
     of states stamped with the same instant of the one clock), the firmware
     stats and the hub's progress.  :meth:`done`
     says when every arm of the job is DONE (or one is in ERROR);
@@ -103,17 +139,14 @@ class PrintRecorder:
         import threading
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64MultiArray, String
-        from visualization_msgs.msg import MarkerArray
 
         from ambots import topics
         from ambots.collision import ArmBody
-        from ambots.rviz import DEPOSIT_TOPIC
         self.cell = cell
         #: where the front end writes the job (job.json: which arms have work, the plan chosen)
         self.job_dir = job_dir
         self._json = json
         self._lock = threading.RLock()
-        self.markers = {}                      #: (ns, id) -> latest Marker
         self.stats = {}                        #: arm -> firmware stats dict
         self.progress = {}
         self.q = {}
@@ -129,7 +162,6 @@ class PrintRecorder:
         self.bead_times = {}      #: arm -> [(K, 8) rows of (p0, p1, ROS time, e_mm)]
         self._row_seq = {}
         self.trace_gaps = 0       #: trace/bead chunks never received (numbered by the firmware)
-        rospy.Subscriber(DEPOSIT_TOPIC, MarkerArray, self._on_markers, queue_size=100)
         rospy.Subscriber(topics.PROGRESS_TOPIC, String, self._on_progress, queue_size=10)
         for arm in cell.arms:
             rospy.Subscriber(topics.joint_states_topic(arm.name), JointState, self._on_joints,
@@ -141,28 +173,18 @@ class PrintRecorder:
             rospy.Subscriber("/%s/firmware/beads" % arm.name, Float64MultiArray, self._on_rows,
                              callback_args=(self.bead_times, arm.name), queue_size=None)
 
-    def _on_markers(self, msg):
-        with self._lock:
-            for m in msg.markers:
-                if m.action == m.DELETEALL:
-                    self.markers.clear()
-                elif m.action == m.DELETE:
-                    self.markers.pop((m.ns, m.id), None)
-                else:
-                    self.markers[m.ns, m.id] = m
-                    if m.points:
-                        import numpy as np
-                        P = np.array([[p.x, p.y, p.z] for p in m.points])
-                        lo, hi = P.min(axis=0), P.max(axis=0)
-                        self.part_lo = lo if self.part_lo is None else np.minimum(self.part_lo, lo)
-                        self.part_hi = hi if self.part_hi is None else np.maximum(self.part_hi, hi)
-
     def _on_rows(self, msg, where):
         from ambots.ros.firmware import rows_of
         store, name = where
         rows = rows_of(msg)
         with self._lock:
             store.setdefault(name, []).append(rows)
+            if store is self.bead_times and len(rows):       # the nozzle path's box (p0, p1)
+                import numpy as np
+                P = rows[:, 0:6].reshape(-1, 3)
+                lo, hi = P.min(axis=0), P.max(axis=0)
+                self.part_lo = lo if self.part_lo is None else np.minimum(self.part_lo, lo)
+                self.part_hi = hi if self.part_hi is None else np.maximum(self.part_hi, hi)
             key = (id(store), name)
             last = self._row_seq.get(key)
             seq = msg.layout.data_offset
@@ -259,6 +281,16 @@ class PrintRecorder:
         with self._lock:
             states = [self.progress.get(n, {}).get("state") for n in names]
         return all(s == "DONE" for s in states), any(s == "ERROR" for s in states)
+
+    def closeup_view(self):
+        """RViz view settings close to the seam of the part printed so far
+        (:func:`ambots.rviz.closeup_view` on every arm's bead ends), or None."""
+        import numpy as np
+        from ambots.rviz import closeup_view
+        from ambots.slicer import SliceSettings
+        with self._lock:
+            paths = {n: np.concatenate(v)[:, 3:6] for n, v in self.bead_times.items() if v}
+        return closeup_view(paths, SliceSettings().layer_height_mm * 1e-3)
 
     def deposit(self):
         """The beads the firmware nodes published (``~beads`` rows), as a

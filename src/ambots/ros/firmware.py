@@ -30,11 +30,13 @@ hub, publishing joint states, the deposit and run statistics.
   robot_state_publisher of the cell turns them into TF (start cell.launch
   with ``publish_home:=false``).
 * :data:`ambots.rviz.DEPOSIT_TOPIC`: visualization_msgs/MarkerArray of
-  LINE_LIST markers (ns = arm name, world frame, the arm's filament
-  colour), one marker per layer of a run (a new marker id after
-  ``max_beads`` beads); beads are the nozzle positions reached (forward
-  kinematics of the executed joint waypoints).  Only changed markers are
-  republished, at most ``marker_rate`` Hz; a new subscriber gets them all.
+  TRIANGLE_LIST markers (ns = arm name, world frame, the arm's filament
+  colour, one colour per triangle: :class:`DepositMarkers`), one marker
+  per layer of a run (a new marker id after ``max_beads`` beads); beads are
+  the nozzle positions reached (forward kinematics of the executed joint
+  waypoints), drawn as shaded tubes (:mod:`ambots.tubes`).  Only changed
+  markers are republished, at most ``marker_rate`` Hz, built outside the
+  loop's lock; a new subscriber gets them all.
 * ``~stats`` (``/<arm>/firmware/stats``, std_msgs/String, latched): JSON
   with the state, line, layer, percent, the runner's :class:`RunStats` and
   what the arm knows of the others, whenever its state or another arm's
@@ -72,7 +74,6 @@ from dataclasses import asdict
 
 import numpy as np
 import rospy
-from geometry_msgs.msg import Point
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
@@ -82,6 +83,7 @@ from ambots import topics
 from ambots.checkpoint import StateStore
 from ambots.clock import ArmReady
 from ambots.collision import ArmBody, bed_clearance, capsule_distances, clearance_between
+from ambots.deposit import bead_area_m2
 from ambots.errors import ProtocolError
 from ambots.motion import MotionPlanner
 from ambots.protocol import (HUB, Ack, ArmState, ClearChunk, LoadChunk, Pause, SendPosition, Start, Status, Stop,
@@ -89,8 +91,10 @@ from ambots.protocol import (HUB, Ack, ArmState, ClearChunk, LoadChunk, Pause, S
 from ambots.reliable import Receiver, Sender, Verdict, seq_seed
 from ambots.ros import ASeriesLog, debug_param
 from ambots.ros.driver import DRIVERS, TrajectoryDriver
+from ambots.ros.markers import ArrayMarker, ArrayMarkers
 from ambots.runner import ArmRunner, Bead, RunStats
 from ambots.rviz import DEPOSIT_TOPIC
+from ambots.tubes import SIDES, exposed, face_normals, merge_beads, shade, tube_triangles
 from ambots.units import MM
 
 __all__ = ["parse_speed", "DepositMarkers", "CollisionCheck", "FirmwareNode"]
@@ -112,74 +116,187 @@ def parse_speed(value):
 
 
 class DepositMarkers:
-    """Batches an arm's beads into LINE_LIST markers: one per layer of a
+    """Batches an arm's beads into shaded ``TRIANGLE_LIST`` markers
+    (:mod:`ambots.tubes`: the beads merged into straight segments, each a
+    tube of ``sides`` faces ``height_m`` tall with the bead's cross-section,
+    one colour per face lit by a fixed light): one marker per layer of a
     run, a new one every ``max_beads`` beads.  Marker ids count up over the
-    node's life (a new run never overwrites an earlier deposit).  Not
-    thread-safe: the caller locks."""
+    node's life (a new run never overwrites an earlier deposit).
 
-    def __init__(self, ns, frame, colour, width_m, max_beads=2000):
-        self.ns, self.frame, self.colour, self.width = ns, frame, colour, width_m
-        self.max_beads = max_beads
-        self._markers = {}        # id -> Marker
+    Segments buried in the deposit (:func:`ambots.tubes.exposed` over all
+    of the arm's beads, the bed's top ``floor_z`` closing it from below)
+    are left out: :meth:`update_exposure` finds them again at most every
+    ``exposure_period`` s, and the markers whose set changed are sent
+    again.  Until then (and for segments laid since) everything is drawn.
+
+    Thread-safe: :meth:`add` and :meth:`take_changed` only copy arrays
+    under an internal lock; :meth:`build` (the triangles and the message)
+    and :meth:`update_exposure` run outside it; the newest build of every
+    marker is kept for :meth:`all`."""
+
+    def __init__(self, ns, frame, colour, height_m, max_beads=2000, sides=SIDES, floor_z=None,
+                 exposure_period=10.0, cell_m=4e-4):
+        self.ns, self.frame, self.colour, self.height = ns, frame, tuple(colour), float(height_m)
+        self.max_beads, self.sides = int(max_beads), int(sides)
+        self.floor_z, self.exposure_period, self.cell = floor_z, float(exposure_period), float(cell_m)
+        self._lock = threading.Lock()
+        self._beads = {}          # id -> [(K, 8) rows of p0 xyz, p1 xyz, area m^2, G-code line]
+        self._count = {}          # id -> beads in the marker
+        self._version = {}        # id -> changes of the marker's look so far (beads, exposure)
+        self._shown = {}          # id -> (beads, (M,) bool over the merge of those beads), or None: all
+        self._merged = {}         # id -> (beads, starts, ends, area): the merge of its first beads
+        self._built = {}          # id -> (version, Marker), the newest built
         self._open = {}           # layer -> id of the marker still being filled
         self._dirty = set()
         self._next_id = 0
+        self._exposure_at = -math.inf
+        self._exposure_of = None  # the bead counts the last exposure was found for
 
     def new_run(self):
         """Beads from now on go to new markers."""
-        self._open.clear()
+        with self._lock:
+            self._open.clear()
 
-    def _marker(self, layer):
+    def _marker_id(self, layer):
         mid = self._open.get(layer)
-        if mid is not None and len(self._markers[mid].points) < 2 * self.max_beads:
-            return self._markers[mid]
-        m = Marker()
-        m.header.frame_id = self.frame
-        m.ns, m.id, m.type, m.action = self.ns, self._next_id, Marker.LINE_LIST, Marker.ADD
-        m.pose.orientation.w = 1.0
-        m.scale.x = self.width
-        m.color.r, m.color.g, m.color.b, m.color.a = (float(c) for c in self.colour)
-        self._markers[m.id] = m
-        self._open[layer] = m.id
+        if mid is not None and self._count[mid] < self.max_beads:
+            return mid
+        mid = self._next_id
         self._next_id += 1
-        return m
+        self._beads[mid], self._count[mid], self._version[mid], self._shown[mid] = [], 0, 0, None
+        self._open[layer] = mid
+        return mid
 
     def add(self, bead):
         """One :class:`~ambots.runner.Bead` (K beads, world frame, m)."""
-        p0, p1 = np.asarray(bead.p0, dtype=float), np.asarray(bead.p1, dtype=float)
-        layers = np.asarray(bead.layer)
-        i = 0
-        while i < len(layers):
-            layer = int(layers[i])
-            j = i
-            while j < len(layers) and layers[j] == layer:
-                j += 1
-            while i < j:
-                m = self._marker(layer)
-                take = min(j - i, self.max_beads - len(m.points) // 2)
-                for a, b in zip(p0[i:i + take].tolist(), p1[i:i + take].tolist()):
-                    m.points.append(Point(*a))
-                    m.points.append(Point(*b))
-                self._dirty.add(m.id)
-                i += take
+        p0, p1 = np.asarray(bead.p0, dtype=float).reshape(-1, 3), np.asarray(bead.p1, dtype=float).reshape(-1, 3)
+        rows = np.column_stack([p0, p1, bead_area_m2(p0, p1, bead.e_mm), np.asarray(bead.line, dtype=float)])
+        layers = np.asarray(bead.layer).reshape(-1)
+        bounds = np.r_[0, np.nonzero(layers[1:] != layers[:-1])[0] + 1, len(layers)]
+        with self._lock:
+            for i, j in zip(bounds[:-1].tolist(), bounds[1:].tolist()):      # runs of one layer
+                while i < j:
+                    mid = self._marker_id(int(layers[i]))
+                    take = min(j - i, self.max_beads - self._count[mid])
+                    self._beads[mid].append(rows[i:i + take])
+                    self._count[mid] += take
+                    self._version[mid] += 1
+                    self._dirty.add(mid)
+                    i += take
+
+    def _snapshot(self, ids):
+        """[(id, version, rows, shown)] of markers ``ids``; the caller holds the lock."""
+        out = []
+        for mid in ids:
+            chunks = self._beads[mid]
+            if len(chunks) > 1:
+                chunks[:] = [np.concatenate(chunks)]
+            out.append((mid, self._version[mid], chunks[0] if chunks else np.zeros((0, 8)), self._shown[mid]))
+        return out
+
+    def take_changed(self):
+        """What changed since the last call, for :meth:`build`."""
+        with self._lock:
+            ids = sorted(self._dirty)
+            self._dirty.clear()
+            return self._snapshot(ids)
+
+    def _segments(self, mid, rows):
+        """The marker's beads merged into segments (cached for the same beads)."""
+        with self._lock:
+            done = self._merged.get(mid)
+        if done is None or done[0] != len(rows):
+            s, e, a, _ = merge_beads(rows[:, 0:3], rows[:, 3:6], rows[:, 6], keys=(rows[:, 7],))
+            keep = a > 0
+            done = (len(rows), s[keep], e[keep], a[keep])
+            with self._lock:
+                if mid not in self._merged or self._merged[mid][0] < len(rows):
+                    self._merged[mid] = done
+        return done[1:]
+
+    def update_exposure(self, now=None, force=False):
+        """Find the buried segments again (every ``exposure_period`` s of
+        ``now``, wall clock, when beads came since; ``force``: now).  Returns
+        whether it ran."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            counts = dict(self._count)
+            if counts == self._exposure_of or (not force and now - self._exposure_at < self.exposure_period):
+                return False
+            self._exposure_at, self._exposure_of = now, counts
+            snap = self._snapshot(sorted(self._beads))
+        parts = [(mid, len(rows), self._segments(mid, rows)) for mid, _, rows, _ in snap]
+        if not parts:
+            return True
+        starts, ends, area = (np.concatenate([p[k] for _, _, p in parts]) for k in range(3))
+        shown = exposed(starts, ends, area, self.height, cell=self.cell, floor_z=self.floor_z, sides=self.sides)
+        cut = np.cumsum([len(p[0]) for _, _, p in parts])[:-1]
+        with self._lock:
+            for (mid, n, _), mask in zip(parts, np.split(shown, cut)):
+                new = None if mask.all() else (n, mask)
+                old = self._shown.get(mid)
+                if (old is None and new is None) or (old is not None and new is not None and old[0] == n
+                                                     and np.array_equal(old[1], mask)):
+                    continue
+                self._shown[mid] = new
+                self._version[mid] += 1
+                self._dirty.add(mid)
+        return True
+
+    def build(self, snapshot, stamp=None):
+        """MarkerArray of a :meth:`take_changed` (or None if empty)."""
+        if not snapshot:
+            return None
+        markers = []
+        for mid, version, rows, shown in snapshot:
+            with self._lock:
+                done = self._built.get(mid)
+            if done is None or done[0] != version:
+                done = (version, self._make(mid, rows, shown))
+                with self._lock:
+                    if mid not in self._built or self._built[mid][0] < version:
+                        self._built[mid] = done
+            markers.append(done[1])
+        if stamp is not None:
+            for m in markers:
+                m.header.stamp = stamp
+        return ArrayMarkers(markers=markers)
+
+    def _make(self, mid, rows, shown):
+        s, e, a = self._segments(mid, rows)
+        if shown is not None:             # buried segments out
+            n_beads, mask = shown
+            keep = np.ones(len(s), dtype=bool)
+            # beads laid since: the segments they made and the last one they may have extended stay in
+            n = min(len(mask) if n_beads == len(rows) else len(mask) - 1, len(s))
+            keep[:n] = mask[:n]
+            s, e, a = s[keep], e[keep], a[keep]
+        tris = tube_triangles(s, e, a, self.height, self.sides)
+        # one colour per triangle (RViz draws them unlit, see ambots.tubes)
+        m = ArrayMarker(xyz=tris.reshape(-1, 3), rgba=shade(face_normals(tris), self.colour))
+        m.header.frame_id = self.frame
+        # nothing left to draw (all buried): RViz drops the marker (an empty one is an error there)
+        m.ns, m.id, m.type = self.ns, mid, Marker.TRIANGLE_LIST
+        m.action = Marker.ADD if len(tris) else Marker.DELETE
+        m.pose.orientation.w = 1.0
+        m.scale.x = m.scale.y = m.scale.z = 1.0
+        m.color.r, m.color.g, m.color.b, m.color.a = (float(c) for c in self.colour)
+        return m
 
     def changed(self, stamp=None):
         """MarkerArray of the markers changed since the last call (or None)."""
-        if not self._dirty:
-            return None
-        out = MarkerArray(markers=[self._markers[i] for i in sorted(self._dirty)])
-        self._dirty.clear()
-        if stamp is not None:
-            for m in out.markers:
-                m.header.stamp = stamp
-        return out
+        return self.build(self.take_changed(), stamp)
 
     def all(self):
-        return MarkerArray(markers=[self._markers[i] for i in sorted(self._markers)])
+        """MarkerArray of every marker so far (or None)."""
+        with self._lock:
+            snap = self._snapshot(sorted(self._beads))
+        return self.build(snap)
 
     @property
     def n_beads(self):
-        return sum(len(m.points) for m in self._markers.values()) // 2
+        with self._lock:
+            return sum(self._count.values())
 
 
 class CollisionCheck:
@@ -252,7 +369,7 @@ class FirmwareNode:
     """
 
     def __init__(self, arm, cell, rate=50.0, report_period=1.0,
-                 marker_rate=4.0, bead_width_mm=0.45, clearance_mm=5.0, max_beads=2000,
+                 marker_rate=4.0, bead_height_mm=None, clearance_mm=5.0, max_beads=2000,
                  retry_period=0.05, max_tries=None, state_dir=None, run_id="", slowdown=1.0,
                  driver="sim", chunk_duration=0.5, command_delay=0.3, progress_tie=True):
         self.arm, self.cell = arm, cell
@@ -271,8 +388,12 @@ class FirmwareNode:
         self.receiver = Receiver(arm.id)
         self._commands = queue.Queue()
         self._wake = threading.Event()        # a command arrived: the loop need not finish its tick
-        self.markers = DepositMarkers(arm.name, cell.world_frame, arm.profile.colour, bead_width_mm * MM,
-                                      max_beads)
+        if bead_height_mm is None:             # the layer height the deposit (ambots.deposit) is built with
+            from ambots.slicer import SliceSettings
+            bead_height_mm = SliceSettings().layer_height_mm
+        # nothing is seen from under the bed: its top closes the deposit from below
+        self.markers = DepositMarkers(arm.name, cell.world_frame, arm.profile.colour, bead_height_mm * MM,
+                                      max_beads, floor_z=float(cell.bed.pose[2, 3]))
         self.sim_now = 0.0
         self._clock_now = 0.0                 #: the latest instant received on /clock
         self.slowdown = float(slowdown)       # > 1: this arm's motion takes that much longer (fault tests)
@@ -509,7 +630,6 @@ class FirmwareNode:
                                                    (changed and wall >= next_checkpoint)):
                         self._checkpoint()
                         next_checkpoint = wall + self.checkpoint_period
-                    markers = self.markers.changed(rospy.Time.now()) if wall >= next_markers else None
                     stats = self._stats_json() if (state != last_state or peers_changed or
                                                    (state is ArmState.PRINTING and out)) else None
             except Exception as exc:          # noqa: BLE001 -- a bug: say why, and stop the node
@@ -555,9 +675,12 @@ class FirmwareNode:
                             q = measured
                     self._js.position = [float(v) for v in q]
                     self._joints.publish(self._js)
-                if markers is not None:
-                    next_markers = wall + self.marker_period
-                    self._deposit.publish(markers)
+                if wall >= next_markers:      # out of the loop's lock: the markers lock themselves
+                    self.markers.update_exposure(wall)
+                    markers = self.markers.changed(rospy.Time.now())
+                    if markers is not None:
+                        next_markers = wall + self.marker_period
+                        self._deposit.publish(markers)
                 if stats is not None:
                     self._stats.publish(String(stats))
                     if state is not last_state:      # barriers come and go: not worth a line each
@@ -680,12 +803,11 @@ class FirmwareNode:
         })
 
     def publish_all_markers(self, publish):
-        """Every marker so far, through ``publish(MarkerArray)`` (serialised
-        under the lock: the loop appends to the markers)."""
-        with self.lock:
-            markers = self.markers.all()
-            if markers.markers:
-                publish(markers)
+        """Every marker so far, through ``publish(MarkerArray)`` (the markers
+        lock themselves; the loop goes on meanwhile)."""
+        markers = self.markers.all()
+        if markers is not None:
+            publish(markers)
 
 
 def _rows(a, seq=0):
