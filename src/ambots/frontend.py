@@ -418,12 +418,13 @@ class Menu:
     """
 
     def __init__(self, link, cell, model=None, out=None, slicer="builtin", mode="concurrent",
-                 seam="straight", arms=None, input=input, output=functools.partial(print, flush=True),
+                 seam="straight", arms=None, scale=1.0, input=input, output=functools.partial(print, flush=True),
                  error=None, clock=time.monotonic, timeout=None, ack_timeout=DEFAULT_ACK_TIMEOUT_S,
                  poll_period=0.1, error_grace=1.0, typed=None):
         self.link, self.cell = link, cell
         self.model, self.out = model, out
         self.slicer, self.mode, self.seam = slicer, mode, seam
+        self.scale = scale          #: scale factor applied to every model (--scale)
         #: the arms to print with (None: the planner chooses, see ambots.job.run_job)
         self.arms = arms
         self.input, self.say = input, output
@@ -527,18 +528,38 @@ class Menu:
         if not path:
             self.complain("no file given: back to the menu")
             return False
-        return self.slice_model(path)
+        from ambots.job import DoesNotFit
+        try:
+            return self.slice_model(path)
+        except DoesNotFit as exc:
+            self.complain("error: %s" % one_line(exc))
+            fit = exc.scale_to_fit
+        if fit <= 0:
+            return False
+        answer = self.ask("scale factor to print it at (at most %g here; Enter: back to the menu)" % fit)
+        if not answer:
+            return False
+        try:
+            scale = float(answer)
+        except ValueError:
+            self.complain("%r is not a number: back to the menu" % _excerpt(answer, 40))
+            return False
+        return self.slice_model(path, scale=scale)
 
-    def slice_model(self, path):
-        """Run the job pipeline on ``path`` and write the programs; the job
-        becomes the current one.  Raises AmbotsError / OSError."""
+    def slice_model(self, path, scale=None):
+        """Run the job pipeline on ``path`` (scaled by ``scale``, default
+        :attr:`scale`) and write the programs; the job becomes the current
+        one.  Raises AmbotsError / OSError."""
+        scale = self.scale if scale is None else scale
         from ambots.job import run_job, write_job
         from ambots.slicer import choose_backend
         slicer = choose_backend(self.slicer)
         self.say("slicer: %s; %s" % (slicer.description, slicer.reason))
-        self.say("slicing %s (cell %s, %s slicer, %s mode) ..." % (path, self.cell.name, slicer.backend, self.mode))
+        self.say("slicing %s%s (cell %s, %s slicer, %s mode) ..." % (
+            path, "" if scale == 1.0 else " at scale %g" % scale, self.cell.name, slicer.backend, self.mode))
         t0 = time.monotonic()
-        job = run_job(path, self.cell, self.arms, slicer=slicer.backend, mode=self.mode, seam=self.seam)
+        job = run_job(path, self.cell, self.arms, slicer=slicer.backend, mode=self.mode, seam=self.seam,
+                      scale=scale)
         out = self.out or os.path.join("out", os.path.splitext(os.path.basename(path))[0] or "model")
         summary = write_job(job, out)
         self.job, self.programs, self.directory, self.sent = job, dict(job.programs), out, False
@@ -766,6 +787,9 @@ def build_parser(prog="front_end"):
     p.add_argument("--arms", help="comma-separated arms to print with, e.g. ur10 (default: the planner chooses "
                                   "the fastest of the cell's arms together and each arm alone)")
     p.add_argument("--out", help="output folder of the programs (default: out/<model stem>)")
+    p.add_argument("--scale", type=float, default=1.0,
+                   help="scale factor applied to the model (default 1; a model too large for the cell is "
+                        "refused with the largest factor that fits, and choice 2 asks for one)")
     p.add_argument("--print", dest="print_job", action="store_true",
                    help="run one whole job without the menu and exit with its status")
     p.add_argument("--follow", metavar="DIR",
@@ -784,4 +808,5 @@ def menu_from_args(args, link, cell, **kw):
     # the same G-code on every machine unless --slicer says otherwise
     slicer = args.slicer or ("builtin" if args.print_job else "auto")
     return Menu(link, cell, model=args.model, out=args.out, slicer=slicer, mode=args.mode, arms=arms,
+                scale=args.scale,
                 timeout=None if args.print_job else args.timeout, **kw)

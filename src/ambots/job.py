@@ -5,11 +5,15 @@ Every step is a plain function of the previous step's result, so callers
 (the ``slice`` CLI, the front-end node, tests) can run all of it or stop
 anywhere.  Units: mm in the bed frame (the G-code frame) for geometry.
 """
+import glob
 import json
+import math
 import os
 from dataclasses import dataclass, field
 from typing import Dict, List
 
+from ambots import data_path
+from ambots.errors import ConfigError, MeshError
 from ambots.units import m_to_mm
 
 #: the model of the menu's "start demo" and of ``make demo`` (package-relative): a
@@ -144,13 +148,55 @@ def plan_lines(plan, brief=False):
     return lines
 
 
+class DoesNotFit(MeshError):
+    """A model larger than the cell's bed or printable height.  The message
+    says which shipped cells would take it and the largest ``--scale``
+    that fits this cell (:attr:`scale_to_fit`, relative to the file)."""
+
+    def __init__(self, message, scale_to_fit):
+        super().__init__(message)
+        self.scale_to_fit = scale_to_fit
+
+
 def prepare_model(path, cell, scale=1.0):
     """Step 1: read, repair and check the model; centre it on the bed (bed
-    frame, mm) and refuse it if it does not fit the bed."""
+    frame, mm) and refuse it if it does not fit the bed
+    (:class:`DoesNotFit`, with advice)."""
     from ambots.mesh import check_fits, load_model, place_on_bed
     mesh = place_on_bed(load_model(path, scale=scale))
-    check_fits(mesh, m_to_mm(cell.bed.size[:2]), m_to_mm(cell.bed.max_height))
+    try:
+        check_fits(mesh, m_to_mm(cell.bed.size[:2]), m_to_mm(cell.bed.max_height))
+    except MeshError as exc:
+        fit = scale * _largest_scale(mesh.extents, cell)
+        fit = math.floor(fit * 1000.0) / 1000.0          # rounded down: it must still fit
+        others = [c for c in shipped_cells() if c.path != cell.path and _largest_scale(mesh.extents, c) >= 1.0]
+        advice = []
+        if others:
+            advice.append("it fits " + " and ".join("cell %s (--cell %s)" % (
+                c.name, os.path.relpath(c.path, data_path())) for c in others))
+        advice.append("cell %s takes it at --scale %g" % (cell.name, fit) if fit > 0 else
+                      "no scale makes it fit cell %s" % cell.name)
+        raise DoesNotFit("%s; %s" % (exc, "; ".join(advice)), fit) from None
     return mesh
+
+
+def _largest_scale(size_mm, cell):
+    """The largest factor by which a model of extents ``size_mm`` still fits
+    ``cell``'s bed and printable height (> 1: it fits as it is)."""
+    limits = (m_to_mm(cell.bed.size[0]), m_to_mm(cell.bed.size[1]), m_to_mm(cell.bed.max_height))
+    return min(lim / s for lim, s in zip(limits, size_mm) if s > 0)
+
+
+def shipped_cells():
+    """The cells in ``config/cells`` (loaded; one that fails to load is skipped)."""
+    from ambots.config import load_cell
+    out = []
+    for path in sorted(glob.glob(data_path("config", "cells", "*.yaml"))):
+        try:
+            out.append(load_cell(path))
+        except ConfigError:
+            continue
+    return out
 
 
 def split(mesh, cell, arms, seam="straight", settings=None, reach=None):

@@ -14,7 +14,9 @@ import os
 from collections import deque
 from dataclasses import replace
 
+import numpy as np
 import pytest
+import trimesh
 
 from ambots import topics
 from ambots.config import default_cell_path, load_cell
@@ -207,13 +209,32 @@ def test_a_bad_model_is_one_line_and_the_menu_goes_on(cell, tmp_path, content, n
     assert "\n" not in s.errors[0] and s.menus_shown() == 3
 
 
-def test_a_model_too_large_for_the_bed_says_by_how_much(cell, tmp_path):
+def test_a_model_too_large_for_the_bed_says_by_how_much_and_what_would_take_it(cell, tmp_path):
     big = tmp_path / "big.stl"
     cube().apply_scale([17.5, 1, 1]).export(str(big))
-    s = Session(["2", str(big), "5"], cell)
+    s = Session(["2", str(big), "", "5"], cell)             # Enter at the scale question: back to the menu
     s.run()
-    assert s.errors == ["error: big.stl: does not fit: model is 350.0 mm wide in x, bed is 300.0 mm: "
-                        "50.0 mm too large"]
+    [error] = s.errors
+    assert error.startswith("error: big.stl: does not fit: model is 350.0 mm wide in x, bed is 300.0 mm: "
+                            "50.0 mm too large; it fits cell ")
+    assert "cell eight_arms_beam (--cell config/cells/eight_arms_beam.yaml)" in error
+    assert error.endswith("; cell kinova_ur10 takes it at --scale 0.857")       # 300 / 350, rounded down
+    assert s.prompts[-2] == "scale factor to print it at (at most 0.857 here; Enter: back to the menu): "
+    assert not s.menu.programs and s.menus_shown() == 2
+
+
+def test_choice_2_prints_a_model_too_large_at_the_scale_given(cell, tmp_path):
+    """The menu's --scale, asked for when the model does not fit: the parts
+    are the model scaled (their extents, read back from the files written)."""
+    big = tmp_path / "big.stl"
+    trimesh.creation.box([400.0, 30.0, 2.0]).export(str(big))
+    s = Session(["2", str(big), "0.7", "5"], cell, out=str(tmp_path / "out"))
+    s.run()
+    assert any("at scale 0.7 (cell kinova_ur10" in line for line in s.lines), s.lines
+    parts = [trimesh.load(str(tmp_path / "out" / (name + ".stl"))) for name in s.menu.programs]
+    lo = np.min([p.bounds[0] for p in parts], axis=0)
+    hi = np.max([p.bounds[1] for p in parts], axis=0)
+    np.testing.assert_allclose(hi - lo, [280.0, 21.0, 1.4], atol=0.01)
 
 
 def test_no_file_given_at_choice_2(cell):

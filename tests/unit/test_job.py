@@ -1,5 +1,6 @@
 """The slice pipeline end to end: model file -> per-arm programs on disk."""
 import json
+import re
 import subprocess
 import sys
 
@@ -7,6 +8,7 @@ import manifold3d as m3
 import pytest
 import trimesh
 
+from ambots import data_path
 from ambots.config import default_cell_path, load_cell
 from ambots.errors import MeshError
 from ambots.gcode import Segment, read_gcode, summarize_file
@@ -90,6 +92,31 @@ def test_a_model_larger_than_the_bed_is_refused_saying_by_how_much(tmp_path, cel
         run_job(str(big), cell)
     r = slice_cli(str(big), "--out", str(tmp_path / "o"))
     assert r.returncode == 2 and "50.0 mm too large" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("dims, cells, scale", [
+    ((1000, 30, 20), ["eight_arms_beam"], 0.3),                  # a beam: the beam cell's bed
+    ((100, 100, 400), [], 0.375),                               # too high for every shipped cell
+    ((500, 500, 2), ["four_arms"], 0.6),                        # a wide plate: the four-arm cell
+])
+def test_a_model_too_large_names_the_cells_that_take_it_and_the_scale_that_fits(tmp_path, cell, dims, cells, scale):
+    from ambots.config import load_cell as load
+    from ambots.job import DoesNotFit, prepare_model, shipped_cells
+    big = tmp_path / "big.stl"
+    trimesh.creation.box(dims).export(str(big))
+    with pytest.raises(DoesNotFit) as info:
+        prepare_model(str(big), cell)
+    text = str(info.value)
+    named = re.findall(r"cell (\w+) \(--cell (\S+)\)", text)
+    assert [n for n, _ in named] == cells, text
+    assert info.value.scale_to_fit == scale and text.endswith("; cell kinova_ur10 takes it at --scale %g" % scale)
+    # independently: each cell named holds the model (bed and height), the others do not
+    for c in shipped_cells():
+        size = (c.bed.size[0] * 1e3, c.bed.size[1] * 1e3, c.bed.max_height * 1e3)
+        assert (c.name in cells) == all(d <= s for d, s in zip(dims, size)) or c.name == cell.name, c.name
+    for name, path in named:
+        prepare_model(str(big), load(data_path(path)))         # the --cell given is right
+    prepare_model(str(big), cell, scale=scale)                   # and so is the scale
 
 
 def test_unknown_arm_and_missing_file_are_clear_errors(tmp_path, cube_stl):
