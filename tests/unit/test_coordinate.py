@@ -449,7 +449,7 @@ def test_sequential_parks_the_waiting_arms_clear_of_the_bed():
               for p in parts}
     programs = build_programs(sliced, parts, c, mode="sequential")
     first = [decode(l[2:]) for l in programs["kinova"].lines if l.startswith(";@A7")]
-    assert [m.robot for m in first[:2]] == [2, 3]
+    assert [m.robot for m in first[:2]] == [c.arm("ur10").id, c.arm("panda").id]
     sx, sy = c.bed.size[0] * 500.0, c.bed.size[1] * 500.0
     for m in first:
         assert abs(m.x) > sx or abs(m.y) > sy
