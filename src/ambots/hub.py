@@ -45,7 +45,7 @@ from typing import Optional, Tuple
 
 from ambots import topics
 from ambots.errors import ConfigError, ProtocolError
-from ambots.protocol import Ack, ArmState, ErrorReport, SendPosition, Status, WaitFor, decode, encode
+from ambots.protocol import Ack, ArmState, ErrorReport, SendPosition, Status, WaitFor, decode, encode, printable
 from ambots.reliable import Receiver, Sender, Verdict
 
 #: longest excerpt of a refused text quoted on the error topic (characters)
@@ -280,7 +280,7 @@ class Hub:
         else:
             arm.record_error(report, now)
             posts = [Post(topics.ERROR_TOPIC, "%s error at G-code line %d: %s"
-                          % (src.label, report.line, _printable(report.message)))]
+                          % (src.label, report.line, printable(report.message)))]
             readers = [self.registry.front_end]
         return posts + [self._forward(report, e, now) for e in readers]
 
@@ -310,13 +310,6 @@ def _excerpt(text):
 
 def _cut(text, n=EXCERPT):
     return text if len(text) <= n else text[:n] + "..."
-
-
-def _printable(text):
-    """``text`` on one line of printable characters (an A11 message may hold
-    newlines, control characters, even a lone surrogate that no UTF-8
-    publisher can send): the others are written as escapes."""
-    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 def _refusal(text, caller, reason):

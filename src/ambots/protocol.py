@@ -442,6 +442,13 @@ def encode(cmd):
     return " ".join(parts)
 
 
+def printable(text):
+    """``text`` with every character that is not printable (newlines,
+    control characters, a lone surrogate that no UTF-8 publisher can send)
+    written as its escape: one line, safe for a log or the error topic."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def one_line(text, limit=200):
     """A message's text on one printable line, for logs (``debug:=true``):
     an A5's command line with its payload counted, ``A5 R0 C3 L21 K38 S1001 Q41
@@ -451,7 +458,7 @@ def one_line(text, limit=200):
         text = repr(text)
     header, newline, payload = text.partition("\n")
     extra = " (+%d G-code lines)" % len(payload.splitlines()) if newline and payload else ""
-    shown = "".join(c if c.isprintable() else repr(c)[1:-1] for c in header)
+    shown = printable(header)
     if len(shown) > limit:
         shown = shown[:limit] + "..."
     return shown + extra
