@@ -576,9 +576,13 @@ class Menu:
             self.say("  %-8s R%-3d %10.0f %7d %7d %11.1f %9.0f %s" % (
                 name, a["id"], a["part_volume_mm3"], a["layers"], len(p.lines), a["extruded_filament_mm"],
                 a["print_time_s"], "by A1" if p.start_first else "after another arm"))
-        from ambots.job import plan_lines
+        from ambots.job import overhang_lines, plan_lines, unsupported_line
         for line in plan_lines(summary.get("plan")):
             self.say("  " + line)
+        if summary.get("overhang"):
+            self.say("  " + unsupported_line(summary["overhang"]))
+            for line in overhang_lines(summary["overhang"]):
+                self.say("  " + line)
         self.say("wrote %s" % ", ".join(os.path.join(out, n) for n in
                                        [a + ".gcode" for a in self.programs] + ["job.json"]))
         return True

@@ -22,7 +22,7 @@ from ambots.units import m_to_mm
 DEMO_MODEL = "config/models/demo_block.stl"
 
 __all__ = ["DEMO_MODEL", "Job", "Candidate", "prepare_model", "split", "slice_parts", "coordinate", "run_job",
-           "write_job", "plan_lines", "TIE_SHARE"]
+           "write_job", "plan_lines", "overhang_lines", "unsupported_line", "TIE_SHARE"]
 
 
 @dataclass
@@ -38,6 +38,8 @@ class Candidate:
     programs: dict = field(default=None, repr=False)   #: {arm name: ArmProgram}, when built
     #: {arm name: :func:`ambots.gcode.summarize` of its program}, from the parse that timed them
     figures: dict = field(default=None, repr=False)
+    #: {arm name: G-code events of its program}, the one parse of each program
+    events: dict = field(default=None, repr=False)
 
     def as_dict(self):
         return {"arms": list(self.arms), "how": self.how,
@@ -62,6 +64,8 @@ class Job:
     candidates: list = field(default_factory=list)
     #: True when the arm set was forced (``--arms``): no other plan was considered
     forced: bool = False
+    #: the slicer.SliceSettings the parts were sliced with (None: the defaults)
+    settings: object = None
 
     @property
     def chosen(self):
@@ -96,11 +100,13 @@ class Job:
         out = {"model": self.model_path, "cell": self.cell.name, "mode": self.mode, "slicer": self.slicer,
                "model_volume_mm3": float(self.mesh.volume) if self.mesh is not None else None,
                "one_arm_estimate_s": self.one_arm_estimate_s, "plan": self.plan_summary(), "arms": {}}
+        events = self.events()
+        out["overhang"] = self.overhang()
         for part in self.parts:
             name = part.arm.name
             if name not in self.programs:
                 continue
-            s = figures.get(name) or summarize(self.programs[name].parse())
+            s = figures.get(name) or summarize(events[name])
             out["arms"][name] = {
                 "id": part.arm.id, "part_volume_mm3": part.volume, "layers": s["layers"],
                 "moves": s["moves"], "extrude_path_mm": s["extrude_path_mm"],
@@ -108,6 +114,59 @@ class Job:
                 "print_time_s": s["print_time_s"], "a_commands": s["a_commands"],
                 "stripped_lines": [{"line": l, "text": t} for l, t in self.programs[name].removed]}
         return out
+
+
+    def events(self):
+        """{arm name: G-code events of its program}: the parse that timed the
+        chosen plan, else parsed now (once: kept)."""
+        chosen = self.chosen
+        kept = (chosen.events if chosen is not None and chosen.programs is self.programs else None) or {}
+        if chosen is not None and chosen.programs is self.programs:
+            chosen.events = kept
+        for n in self.programs:
+            if n not in kept:
+                kept[n] = self.programs[n].parse()
+        return kept
+
+    def overhang(self):
+        """Extrusion with nothing under it in all the programs together
+        (:func:`ambots.overhang.unsupported_extrusion`, the bead width of the
+        slice settings), plus ``support``: whether the slicer was asked for
+        support (None if it does not say).  Computed once per job."""
+        if getattr(self, "_overhang", None) is None:
+            from ambots.overhang import unsupported_extrusion
+            from ambots.slicer import SliceSettings
+            settings = self.settings or SliceSettings()
+            out = unsupported_extrusion(self.events().values(), bead_width_mm=settings.bead_width_mm)
+            out["support"] = getattr(settings, "support", None)
+            self._overhang = out
+        return self._overhang
+
+
+def unsupported_line(overhang):
+    """One line for people: the unsupported share of the extruded length."""
+    return "unsupported: %.2f %% of %.0f mm extruded (%.0f mm; nothing of the layer below within %g mm, " \
+           "bridges up to %g mm allowed)" % (100.0 * overhang["unsupported_share"], overhang["extruded_mm"],
+                                            overhang["unsupported_mm"], overhang["bead_width_mm"],
+                                            overhang["bridge_max_mm"])
+
+
+def overhang_lines(overhang):
+    """Warnings for people about extrusion in mid-air (``job.json``'s
+    "overhang", :meth:`Job.overhang`): none when everything is supported."""
+    from ambots.overhang import layer_ranges
+    if not overhang or not overhang.get("unsupported_mm"):
+        return []
+    layers = overhang["unsupported_layers"]
+    z = [l["z_mm"] for l in layers]
+    where = "layer%s %s (z %s mm)" % ("" if len(layers) == 1 else "s", layer_ranges(l["layer"] for l in layers),
+                                      "%.2f" % z[0] if len(z) == 1 else "%.2f-%.2f" % (min(z), max(z)))
+    support = overhang.get("support")
+    why = {False: "support is off (--support on adds it)", True: "support did not reach it"}.get(support, "")
+    return ["warning: %.2f %% of the extruded length (%.1f mm) has nothing under it within one bead width "
+            "(bridges up to %g mm allowed), on %s%s" % (
+                100.0 * overhang["unsupported_share"], overhang["unsupported_mm"], overhang["bridge_max_mm"], where,
+                "; " + why if why else "")]
 
 
 def _how(arms, how):
@@ -244,17 +303,17 @@ def _timed(programs, cell):
         events = {n: p.parse() for n, p in programs.items()}
         est = estimate_programs(programs, cell, events=events)
     except AmbotsError as exc:
-        return None, str(exc), None
+        return None, str(exc), None, None
     figures = {n: summarize(ev) for n, ev in events.items()}
     if est["errors"]:
-        return None, "; ".join(est["errors"].values()), figures
-    return est["makespan_s"], None, figures
+        return None, "; ".join(est["errors"].values()), figures, events
+    return est["makespan_s"], None, figures, events
 
 
 def _plan(parts, sliced, programs, arms, how, cell):
     """A plan's (parts, sliced, programs, Candidate), timed."""
-    t, why, figures = _timed(programs, cell)
-    return parts, sliced, programs, Candidate(arms, how, t, why, programs, figures)
+    t, why, figures, events = _timed(programs, cell)
+    return parts, sliced, programs, Candidate(arms, how, t, why, programs, figures, events)
 
 
 def _alone(mesh, cell, arm, text, idle, settings, read, reach=None):
@@ -287,7 +346,7 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
     if choose is None:                   # sequential mode is the original's way: the arms asked for, in turn
         choose = arms is None and mode == "concurrent"
     arms = list(cell.arms if arms is None else arms)
-    job = Job(model_path, cell, arms, slicer, mode, seam, forced=not choose)
+    job = Job(model_path, cell, arms, slicer, mode, seam, forced=not choose, settings=settings)
     job.mesh = prepare_model(model_path, cell, scale)
     idle = [a for a in cell.arms if a.name not in {b.name for b in arms}]
     plans = []

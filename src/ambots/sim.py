@@ -251,6 +251,8 @@ def report(result, motion, job=None, model=None, cell=None, mode=None, slicer=No
             "slicer": slicer if slicer is not None else (job.slicer if job else None)}
     model_mm3 = float(job.mesh.volume) if job is not None and job.mesh is not None else None
     extra = {"plan": job.plan_summary()} if job is not None and getattr(job, "candidates", None) else {}
+    if job is not None and getattr(job, "programs", None):
+        extra["overhang"] = job.overhang()
     return build(meta, result.finished, arms, round(result.makespan_s, 3), motion, deposit_mm3, model_mm3,
                  result.wall_time_s if wall_time_s is None else wall_time_s, reason=result.reason,
                  errors=[{"arm": e.robot, "line": e.line, "message": e.message} for e in result.errors],

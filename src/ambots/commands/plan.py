@@ -89,9 +89,13 @@ def run(args):
     print("%s -> %s: %s, %s mode, makespan %.0f s (simulated), %s, wall %.1f s" % (
         args.model, args.out, rep["cell"], rep["mode"], rep["makespan_s"],
         "finished" if rep["finished"] else "NOT finished: " + rep["reason"], rep["wall_time_s"]))
-    from ambots.job import plan_lines
+    from ambots.job import overhang_lines, plan_lines, unsupported_line
     for line in plan_lines(rep.get("plan")):
         print("  " + line)
+    if rep.get("overhang"):
+        print("  " + unsupported_line(rep["overhang"]))
+        for line in overhang_lines(rep["overhang"]):
+            print("  " + line)
     print("  collisions: %s; closest approach of two arms: %s mm" % (rep["collisions"], rep["min_clearance_mm"]))
     print("  %-8s %7s %11s %10s %9s %9s %5s %8s" % ("arm", "moves", "extrude mm", "travel mm", "print s",
                                                  "idle s", "ik!", "dev mm"))

@@ -33,8 +33,11 @@ def run(args):
     summary = write_job(job, args.out)
     print("%s -> %s: %s, %s slicer, %s mode, model %.0f mm3" % (
         args.model, args.out, cell.name, args.slicer, args.mode, summary["model_volume_mm3"]))
-    from ambots.job import plan_lines
+    from ambots.job import overhang_lines, plan_lines, unsupported_line
     for line in plan_lines(summary["plan"]):
+        print("  " + line)
+    print("  " + unsupported_line(summary["overhang"]))
+    for line in overhang_lines(summary["overhang"]):
         print("  " + line)
     print("  %-8s %4s %10s %7s %7s %11s %11s %9s" % ("arm", "id", "part mm3", "layers", "moves",
                                                     "extrude mm", "filament mm", "time s"))

@@ -1,0 +1,196 @@
+"""Extrusion with nothing under it, measured on the G-code itself.
+
+A real cell drops filament that has nothing below it.  This module states
+how much of a print is in mid-air, from the toolpath alone (whatever
+slicer wrote it, with or without support), by the rule of issue
+"Printable":
+
+* the extrusions are grouped by height (the layers of all the G-code given,
+  e.g. every arm's program of one job, in one frame);
+* a point of an extrusion on a layer is **supported** when some extrusion of
+  the layer below (any program's) passes within one bead width of it; the
+  lowest layer lies on the bed;
+* a **bridge** is allowed: a stretch of one extrusion path (consecutive
+  extruding moves, end to start) that is unsupported over at most
+  ``bridge_max_mm`` and has supported points at both ends counts as
+  supported;
+* the **unsupported share** is the unsupported extruded length over the
+  whole extruded length.
+
+Points are taken every ``step_mm`` along each extruding move (each sample
+stands for its stretch of the path); the distance to the layer below is
+the exact distance to its extrusion segments (a shapely STRtree
+``dwithin`` query), not to samples of them.  Millimetres throughout, the
+G-code frame.
+"""
+import math
+from typing import Dict, Iterable, List
+
+import numpy as np
+
+from ambots.gcode import Segment
+
+__all__ = ["unsupported_extrusion", "layer_ranges", "DEFAULT_BEAD_WIDTH_MM", "DEFAULT_BRIDGE_MAX_MM"]
+
+#: one bead width: the reach of the rule (the slicers' default extrusion width)
+DEFAULT_BEAD_WIDTH_MM = 0.45
+#: the longest unsupported stretch of a path that counts as a bridge
+DEFAULT_BRIDGE_MAX_MM = 10.0
+#: layers closer than this in z are one layer
+_Z_TOL = 1e-3
+
+
+def _paths(events):
+    """Extrusion paths of one program: lists of (start, end) segments joined
+    end to start, in the order printed."""
+    paths, cur, last_end = [], [], None
+    for ev in events:
+        if type(ev) is not Segment:
+            continue
+        (x0, y0, z0), (x1, y1, z1) = ev.start, ev.end
+        moving = x0 != x1 or y0 != y1
+        if not (ev.extrude and moving):
+            if moving or z0 != z1:        # a travel ends the path; a pure E move (retract/prime) does not
+                if cur:
+                    paths.append(cur)
+                cur, last_end = [], None
+            continue
+        if cur and (last_end != ev.start or abs(z1 - z0) > _Z_TOL):
+            paths.append(cur)
+            cur = []
+        cur.append((ev.start, ev.end))
+        last_end = ev.end
+    if cur:
+        paths.append(cur)
+    return paths
+
+
+def _sample(path, step_mm):
+    """Sample points of one path: (n, 2) xy, (n,) weights (mm of path each)."""
+    seg = np.asarray(path, float)                 # (m, 2, 3)
+    a, b = seg[:, 0, :2], seg[:, 1, :2]
+    length = np.hypot(*(b - a).T)
+    k = np.maximum(1, np.ceil(length / step_mm)).astype(int)
+    idx = np.repeat(np.arange(len(seg)), k)
+    # midpoints of k equal pieces of each segment
+    first = np.cumsum(k) - k
+    j = np.arange(len(idx)) - np.repeat(first, k)
+    f = (j + 0.5) / k[idx]
+    pts = a[idx] + (b[idx] - a[idx]) * f[:, None]
+    return pts, (length / k)[idx]
+
+
+def _bridged(supported, weights, path_id, bridge_max_mm):
+    """``supported`` with the bridges filled in: runs of unsupported samples
+    inside one path, at most ``bridge_max_mm`` long, with a supported
+    sample of the same path on both sides.  Arrays of one layer's samples
+    in path order (``path_id`` non-decreasing)."""
+    n = len(supported)
+    bad = ~supported
+    if not bad.any():
+        return supported.copy()
+    edges = np.diff(np.concatenate([[False], bad, [False]]).astype(np.int8))
+    starts = np.flatnonzero(edges == 1)           # first unsupported sample of each run
+    ends = np.flatnonzero(edges == -1)            # one past its last
+    # runs split where the path changes: a run belongs to one path only
+    cut = np.flatnonzero(np.diff(path_id) != 0) + 1
+    cut = cut[bad[cut] & bad[cut - 1]]
+    starts = np.sort(np.concatenate([starts, cut]))
+    ends = np.sort(np.concatenate([ends, cut]))
+    cum = np.concatenate([[0.0], np.cumsum(weights)])
+    length = cum[ends] - cum[starts]
+    inside = (starts > 0) & (ends < n)
+    inside[inside] &= (path_id[starts[inside] - 1] == path_id[starts[inside]]) & \
+        (path_id[ends[inside]] == path_id[starts[inside]])
+    fill = inside & (length <= bridge_max_mm + 1e-9)
+    out = supported.copy()
+    if fill.any():
+        mark = np.zeros(n + 1, np.int64)
+        np.add.at(mark, starts[fill], 1)
+        np.add.at(mark, ends[fill], -1)
+        out |= np.cumsum(mark[:n]) > 0
+    return out
+
+
+def unsupported_extrusion(programs: Iterable, bead_width_mm=DEFAULT_BEAD_WIDTH_MM,
+                          bridge_max_mm=DEFAULT_BRIDGE_MAX_MM, step_mm=0.2):
+    """How much extrusion has nothing under it, by the rule of the module doc.
+
+    ``programs``: iterables of G-code events (:func:`ambots.gcode.read_gcode`
+    or :func:`~ambots.gcode.parse_gcode_text`), one per program, all in one
+    frame (a job's programs together: a bead may rest on another arm's).
+
+    Returns a dict: ``extruded_mm`` (extruding path length), ``unsupported_mm``,
+    ``unsupported_share`` (0..1; 0 if nothing is extruded), ``bridged_mm``
+    (unsupported but counted as bridges), ``layers`` (number of extruding
+    heights), ``unsupported_layers``: [{``layer`` (1 = lowest extruding
+    height), ``z_mm``, ``unsupported_mm``}] for every layer with some, and
+    the rule's figures ``bead_width_mm``, ``bridge_max_mm``.
+    """
+    import shapely
+
+    if not bead_width_mm > 0 or not bridge_max_mm >= 0 or not step_mm > 0:
+        raise ValueError("bead_width_mm and step_mm must be > 0 and bridge_max_mm >= 0")
+    paths = [p for events in programs for p in _paths(events)]
+    result = {"extruded_mm": 0.0, "unsupported_mm": 0.0, "unsupported_share": 0.0, "bridged_mm": 0.0,
+              "layers": 0, "unsupported_layers": [], "bead_width_mm": bead_width_mm,
+              "bridge_max_mm": bridge_max_mm}
+    if not paths:
+        return result
+    z = np.array([p[0][0][2] for p in paths])
+    order = np.argsort(z, kind="stable")
+    # layer heights: sorted z, a new layer wherever z steps by more than the tolerance
+    zs = z[order]
+    new = np.concatenate([[True], np.diff(zs) > _Z_TOL])
+    layer_of = np.empty(len(paths), int)
+    layer_of[order] = np.cumsum(new) - 1
+    heights = zs[new]
+    by_layer: Dict[int, List[int]] = {}
+    for i, k in enumerate(layer_of):
+        by_layer.setdefault(int(k), []).append(i)
+    total = unsupported = bridged = 0.0
+    per_layer = []
+    below = None
+    for k in range(len(heights)):
+        members = [paths[i] for i in by_layer[k]]
+        samples = [_sample(p, step_mm) for p in members]
+        if k == 0:
+            for _, w in samples:
+                total += float(w.sum())
+        else:
+            pts = np.concatenate([s for s, _ in samples])
+            w = np.concatenate([w for _, w in samples])
+            pid = np.repeat(np.arange(len(samples)), [len(w) for _, w in samples])
+            hit = shapely.contains_xy(below, pts[:, 0], pts[:, 1])
+            ok = _bridged(hit, w, pid, bridge_max_mm)
+            total += float(w.sum())
+            lost = float(w[~ok].sum())
+            bridged += float(w[ok & ~hit].sum())
+            if lost > 0:
+                per_layer.append({"layer": k + 1, "z_mm": round(float(heights[k]), 4),
+                                  "unsupported_mm": round(lost, 3)})
+            unsupported += lost
+        segs = np.concatenate([np.asarray(p, float)[:, :, :2] for p in members])
+        # everything within one bead width of this layer's extrusion: the area that carries the next
+        below = shapely.buffer(shapely.multilinestrings(shapely.linestrings(segs)), bead_width_mm, quad_segs=4)
+        shapely.prepare(below)
+    result.update(extruded_mm=round(total, 3), unsupported_mm=round(unsupported, 3),
+                  unsupported_share=unsupported / total if total > 0 else 0.0,
+                  bridged_mm=round(bridged, 3), layers=len(heights), unsupported_layers=per_layer)
+    return result
+
+
+def layer_ranges(layers, limit=12):
+    """Layer numbers as short ranges for people: [3, 4, 5, 9] -> "3-5, 9"
+    (at most ``limit`` ranges, then "... (N more)")."""
+    layers = sorted(set(int(k) for k in layers))
+    ranges = []
+    for k in layers:
+        if ranges and k == ranges[-1][1] + 1:
+            ranges[-1][1] = k
+        else:
+            ranges.append([k, k])
+    text = ["%d" % a if a == b else "%d-%d" % (a, b) for a, b in ranges]
+    if len(text) > limit:
+        return ", ".join(text[:limit]) + ", ... (%d more)" % (len(text) - limit)
+    return ", ".join(text)

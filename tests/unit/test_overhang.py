@@ -1,0 +1,148 @@
+"""Unsupported extrusion measured on the G-code (ambots.overhang): hand-made
+toolpaths whose unsupported length follows from plain geometry, and the
+figure a job reports for a T whose overhang is known from its shape."""
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+import trimesh
+
+from ambots.gcode import parse_gcode_text
+from ambots.overhang import layer_ranges, unsupported_extrusion
+
+W = 0.45
+
+
+def gcode(*layers):
+    """G-code text: ``layers`` = [(z, [path, ...]), ...], a path = [(x, y), ...]
+    extruded end to end, with a travel before each path."""
+    out = ["G21", "G90", "M83"]
+    for z, paths in layers:
+        out.append(";LAYER_CHANGE")
+        out.append("G1 Z%.3f F600" % z)
+        for path in paths:
+            out.append("G0 X%.3f Y%.3f" % path[0])
+            for x, y in path[1:]:
+                out.append("G1 X%.3f Y%.3f E0.05 F1200" % (x, y))
+    return "\n".join(out) + "\n"
+
+
+def measure(*programs, **kw):
+    return unsupported_extrusion([list(parse_gcode_text(p, "t%d.gcode" % i)) for i, p in enumerate(programs)], **kw)
+
+
+def test_a_line_longer_than_the_one_below_is_unsupported_past_a_bead_width():
+    r = measure(gcode((0.2, [[(0, 0), (20, 0)]]), (0.4, [[(0, 0), (40, 0)]])))
+    # supported up to x = 20 + W; the rest (19.55 mm) hangs in the air, and ends in it: no bridge
+    assert r["extruded_mm"] == pytest.approx(60.0, abs=1e-6)
+    assert r["unsupported_mm"] == pytest.approx(40 - 20 - W, abs=0.2)
+    assert r["unsupported_share"] == pytest.approx((40 - 20 - W) / 60, abs=0.2 / 60)
+    assert r["layers"] == 2
+    assert [l["layer"] for l in r["unsupported_layers"]] == [2]
+    assert r["unsupported_layers"][0]["z_mm"] == pytest.approx(0.4)
+
+
+def test_the_lowest_layer_lies_on_the_bed():
+    r = measure(gcode((0.2, [[(0, 0), (30, 0), (30, 30)]])))
+    assert r["unsupported_mm"] == 0.0 and r["extruded_mm"] == pytest.approx(60.0)
+
+
+@pytest.mark.parametrize("gap, bridged", [(9.0, True), (10.0 + 2 * W - 0.3, True), (14.0, False), (30.0, False)])
+def test_a_span_between_supports_is_a_bridge_up_to_10_mm(gap, bridged):
+    # two pillars' tops, ``gap`` apart, and a line across them on the layer above
+    a = 5.0
+    below = [[(0, 0), (a, 0)], [(a + gap, 0), (2 * a + gap, 0)]]
+    r = measure(gcode((0.2, below), (0.4, [[(0, 0), (2 * a + gap, 0)]])))
+    air = gap - 2 * W                     # the stretch farther than one bead width from both pillars
+    if bridged:
+        assert r["unsupported_mm"] == 0.0
+        assert r["bridged_mm"] == pytest.approx(air, abs=0.2)
+    else:
+        assert r["unsupported_mm"] == pytest.approx(air, abs=0.2)
+
+
+def test_a_bead_beside_the_one_below_is_supported_within_one_bead_width():
+    base = [(0, 0), (20, 0)]
+    near = measure(gcode((0.2, [base]), (0.4, [[(0, W - 0.05), (20, W - 0.05)]])))
+    far = measure(gcode((0.2, [base]), (0.4, [[(0, W + 0.05), (20, W + 0.05)]])))
+    assert near["unsupported_mm"] == 0.0
+    assert far["unsupported_mm"] == pytest.approx(20.0, abs=1e-6)
+
+
+def test_a_bead_may_rest_on_another_programs_bead():
+    """A job's programs are measured together: one arm prints on the other's layer."""
+    first = gcode((0.2, [[(0, 0), (20, 0)]]))
+    second = gcode((0.4, [[(0, 0), (20, 0)]]))
+    assert measure(first, second)["unsupported_mm"] == 0.0
+    assert measure(second)["unsupported_mm"] == 0.0          # alone, its only layer is the lowest: the bed
+    assert measure(first, gcode((0.4, [[(0, 5), (20, 5)]])))["unsupported_mm"] == pytest.approx(20.0, abs=1e-6)
+
+
+def test_a_retraction_and_prime_inside_a_path_keep_it_one_path_for_the_bridge_rule():
+    text = gcode((0.2, [[(0, 0), (5, 0)], [(13, 0), (18, 0)]]))
+    text += ";LAYER_CHANGE\nG1 Z0.4\nG0 X0 Y0\nG1 X5 Y0 E0.1\nG1 E-0.8\nG1 E0.8\nG1 X18 Y0 E0.3\n"
+    r = measure(text)
+    assert r["unsupported_mm"] == 0.0 and r["bridged_mm"] > 0
+
+
+def test_layer_ranges():
+    assert layer_ranges([9, 3, 4, 5]) == "3-5, 9"
+    assert layer_ranges(range(1, 40, 2), limit=3) == "1, 3, 5, ... (17 more)"
+
+
+def test_bad_rule_figures_are_refused():
+    with pytest.raises(ValueError):
+        unsupported_extrusion([], bead_width_mm=0)
+
+
+@pytest.fixture(scope="module")
+def t_shape(tmp_path_factory):
+    """A T: a 10 x 10 x 10 mm stem under a 60 x 10 x 4 mm bar; 2 x 25 mm of the
+    bar's underside overhangs, 10 mm above the bed."""
+    stem = trimesh.creation.box((10, 10, 10))
+    stem.apply_translation((0, 0, 5))
+    bar = trimesh.creation.box((60, 10, 4))
+    bar.apply_translation((0, 0, 12))
+    path = tmp_path_factory.mktemp("t") / "t_shape.stl"
+    trimesh.boolean.union([stem, bar], engine="manifold").export(str(path))
+    return path
+
+
+def test_slice_reports_the_T_bars_first_layer_as_unsupported(t_shape, tmp_path):
+    """``slice`` prints the share and a warning naming the layer, and job.json
+    holds it.  The bar's first layer prints at z = 10.2 mm: layer 10.2 / 0.2 = 51
+    (0.2 mm layers from the bed).  Its unsupported length is the overhanging
+    area's beads: at least the two overhangs' perimeters (2 x 2 loops of about
+    2 x (25 - 2 W) + 2 x (10 - 2 W) mm, less the part within a bead width of the stem)."""
+    out = tmp_path / "job"
+    res = subprocess.run([sys.executable, "-m", "ambots", "slice", str(t_shape), "--arms", "ur10",
+                          "--out", str(out)], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    assert "warning:" in res.stdout and "on layer 51 (z 10.20 mm)" in res.stdout, res.stdout
+    job = json.loads((out / "job.json").read_text())
+    o = job["overhang"]
+    assert [l["layer"] for l in o["unsupported_layers"]] == [51]
+    # the overhang is 2 x 24.55 x 10 mm (past a bead width from the stem); its first layer is laid solid:
+    # area / bead spacing of 0.2 mm layers (w - h (1 - pi/4)) is the length of bead over air
+    spacing = W - 0.2 * (1 - math.pi / 4)
+    solid = 2 * (25 - W) * 10 / spacing
+    assert 0.8 * solid < o["unsupported_mm"] < 1.2 * solid
+    assert o["unsupported_share"] == pytest.approx(o["unsupported_mm"] / o["extruded_mm"])
+    info = subprocess.run([sys.executable, "-m", "ambots", "info", "--json", str(out / "ur10.gcode")],
+                          capture_output=True, text=True, timeout=300)
+    assert info.returncode == 0, info.stderr
+    per_file = json.loads(info.stdout)
+    assert per_file["unsupported_mm"] == pytest.approx(o["unsupported_mm"], rel=1e-6)
+    assert [l["layer"] for l in per_file["unsupported_layers"]] == [51]
+
+
+def test_the_demo_block_has_nothing_unsupported(tmp_path):
+    from ambots import data_path
+    from ambots.mesh import load_model
+    from ambots.slicer import slice_mesh
+    m = load_model(data_path("config", "models", "demo_block.stl"))
+    m.apply_translation((0, 0, -m.bounds[0][2]))
+    r = unsupported_extrusion([list(parse_gcode_text(slice_mesh(m), "demo.gcode"))])
+    assert r["unsupported_mm"] == 0.0 and r["extruded_mm"] > 1e5
