@@ -86,9 +86,24 @@ def nozzle_slack(result, cell, job, step_s=0.1):
                 (na, oa), (nb, ob) = planes[a, b], planes[b, a]
                 low = (nozzle[a][:, 2] <= top) & (nozzle[b][:, 2] <= top)
                 if low.any():
-                    s = nozzle[a][low] @ na - oa + nozzle[b][low] @ nb - ob
-                    out[a, b] = (float(np.min(s) - zones[a, b]), int(low.sum()))
+                    s = nozzle[a][low] @ na - oa + nozzle[b][low] @ nb - ob - zones[a, b]
+                    inside = np.flatnonzero(s < 0)
+                    # where the pair is inside its zone: how far each nozzle is off its own program's path
+                    off = [(float(-s[i]), off_path(job.programs[a], nozzle[a][low][i]),
+                            off_path(job.programs[b], nozzle[b][low][i])) for i in inside]
+                    out[a, b] = (float(np.min(s)), int(low.sum()), off)
     return out
+
+
+def off_path(program, p):
+    """Distance (mm) from the point ``p`` (bed frame, mm) to the nearest move
+    of ``program`` (its G-code segments, travels included)."""
+    from ambots.gcode import Segment
+    segs = [e for e in program.parse() if type(e) is Segment and e.start != e.end]
+    S = np.array([e.start for e in segs])
+    d = np.array([e.end for e in segs]) - S
+    f = np.clip(((p - S) * d).sum(1) / (d * d).sum(1), 0.0, 1.0)
+    return float(np.min(np.linalg.norm(S + f[:, None] * d - p, axis=1)))
 
 
 @pytest.mark.parametrize("layout,seed", [(k, s) for k in LAYOUTS for s in SEEDS[k]])
@@ -106,13 +121,20 @@ def test_perturbed_speeds_never_bring_two_arms_into_contact(jobs, layout, seed):
     assert motion["min_clearance_mm"] > 0
     slack = nozzle_slack(result, cell, job)
     # two adjacent arms worked on the part at the same time for a while
-    assert slack and max(n for _, n in slack.values()) > 1000, slack
-    # the zones' rule, sampled every 0.1 s: within 1 mm.  With the one timing law and the
-    # real-size bodies the Panda and the UR10 of three_arms, seed 0, come 0.57 mm inside
-    # their 201 mm zone (its 10 mm margin is part of the zone; contacts above are 0);
-    # under the feedrate-only timing it held to 0.5 mm.  Not yet explained (issue note)
-    for pair, (s, _) in slack.items():
-        assert s >= -1.0, "%s and %s: nozzles %.1f mm nearer than their zone" % (pair + (-s,))
+    assert slack and max(n for _, n, _ in slack.values()) > 1000, slack
+    # the zones' rule, sampled every 0.1 s, holds on the programs' paths: the schedule puts
+    # pieces (and the travels between them) up to the band edges, so two nozzles at their
+    # edges at once are exactly a zone apart; the executed motion may stray from a programmed
+    # line (the timed curve between the planner's waypoints), and where a pair is inside its
+    # zone, it is by no more than the two nozzles' distances to their own programs' paths
+    # (measured: travels 0.02-0.2 mm off their line in three_arms, seed 0; the zone's 10 mm
+    # margin absorbs it, contacts above are 0).  0.05 mm: the nearest point of a path need not
+    # be the point the arm was executing (measured up to 0.035 mm)
+    for pair, (s, _, off) in slack.items():
+        for inside, da, db in off:
+            assert inside <= da + db + 0.05, "%s and %s: nozzles %.2f mm inside their zone, %.3f + %.3f mm " \
+                "off their paths" % (pair + (inside, da, db))
+        assert s >= -0.5, "%s and %s: nozzles %.2f mm inside their zone" % (pair + (-s,))
     # the same deposit as planned: every arm printed all of its program
     for name, r in result.runners.items():
         assert sum(float(b.e_mm.sum()) for b in r.beads) == pytest.approx(
