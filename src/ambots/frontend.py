@@ -94,6 +94,16 @@ DEFAULT_TIMEOUT_BASE_S = 600.0
 DEFAULT_ACK_TIMEOUT_S = 10.0
 
 
+def print_timeout_s(print_time_s, speed=None):
+    """How long a whole ``--print`` job may take by default, wall s:
+    :data:`DEFAULT_TIMEOUT_BASE_S` plus twice the estimated print time
+    (simulated s) at the pace of the cell's clock, ``speed`` simulated s per
+    wall s (None: ``speed:=max`` or a real cell, counted as 1, so a slow
+    machine is never cut short).  At ``speed:=4`` the demo's 9,055 s get
+    600 + 2 x 9,055 / 4 s."""
+    return DEFAULT_TIMEOUT_BASE_S + 2.0 * float(print_time_s) / (speed if speed else 1.0)
+
+
 def one_line(exc, limit=400):
     """An error as one line (multi-line messages, e.g. a slicer's output,
     joined with " / "), cut to about ``limit`` characters."""
@@ -420,8 +430,10 @@ class Menu:
     def __init__(self, link, cell, model=None, out=None, slicer="builtin", mode="concurrent",
                  seam="straight", arms=None, scale=1.0, input=input, output=functools.partial(print, flush=True),
                  error=None, clock=time.monotonic, timeout=None, ack_timeout=DEFAULT_ACK_TIMEOUT_S,
-                 poll_period=0.1, error_grace=1.0, typed=None):
+                 poll_period=0.1, error_grace=1.0, typed=None, speed=None):
         self.link, self.cell = link, cell
+        #: the clock's pace, simulated s per wall s (None: max, or a real cell): the default timeout
+        self.speed = speed
         self.model, self.out = model, out
         self.slicer, self.mode, self.seam = slicer, mode, seam
         self.scale = scale          #: scale factor applied to every model (--scale)
@@ -754,7 +766,7 @@ class Menu:
         """Slice ``model`` (default: ``self.model``, else the demo model),
         send, start and follow; the exit status (0 done, 1 failed, 2 bad input).
         ``timeout`` (s) covers sending, starting and printing; default
-        :data:`DEFAULT_TIMEOUT_BASE_S` + twice the longest estimated print time."""
+        :func:`print_timeout_s` of the longest estimated print time."""
         from ambots.job import DEMO_MODEL
         try:
             self.slice_model(model or self.model or data_path(DEMO_MODEL))
@@ -762,7 +774,7 @@ class Menu:
             self.complain("error: %s" % one_line(exc))
             return EXIT_BAD_INPUT
         if timeout is None:
-            timeout = DEFAULT_TIMEOUT_BASE_S + 2 * max(self.print_times.values(), default=0.0)
+            timeout = print_timeout_s(max(self.print_times.values(), default=0.0), self.speed)
         deadline = self.clock() + timeout
         try:
             ok = self.send(deadline) and self.start(deadline)
@@ -773,6 +785,19 @@ class Menu:
 
 
 # -------------------------------------------------------------------- the command line
+
+def _timeout(text):
+    """--timeout: wall s > 0, or "auto" (the default)."""
+    if text.strip().lower() in ("", "auto"):
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0:
+        raise argparse.ArgumentTypeError("must be a number of seconds > 0 or auto, not %r" % text)
+    return value
+
 
 def build_parser(prog="front_end"):
     p = argparse.ArgumentParser(
@@ -799,9 +824,10 @@ def build_parser(prog="front_end"):
     p.add_argument("--follow", metavar="DIR",
                    help="attach to a job already running (its programs in DIR, e.g. after the front end "
                         "that started it crashed): print its progress, send nothing; exit like --print")
-    p.add_argument("--timeout", type=float,
-                   help="s to wait for the print to finish (--print default: %.0f + twice the longest "
-                        "estimated print time; menu default: no limit)" % DEFAULT_TIMEOUT_BASE_S)
+    p.add_argument("--timeout", type=_timeout,
+                   help="wall s to wait for the print to finish (--print default: %.0f + twice the longest "
+                        "estimated print time at the clock's pace, /clock/speed; menu default: no limit)"
+                        % DEFAULT_TIMEOUT_BASE_S)
     return p
 
 

@@ -21,7 +21,7 @@ import trimesh
 from ambots import topics
 from ambots.config import default_cell_path, load_cell
 from ambots.frontend import (CHOICES, EXIT_BAD_INPUT, EXIT_FAILED, EXIT_OK, Menu, ReliableLink,
-                             Undelivered, build_parser, load_programs, menu_from_args)
+                             Undelivered, build_parser, load_programs, menu_from_args, print_timeout_s)
 from ambots.job import run_job, write_job
 from ambots.protocol import (Ack, ArmState, ErrorReport, LoadChunk, Start, Status, decode, encode)
 from shapes import cube  # tests/unit/shapes.py
@@ -464,6 +464,12 @@ def test_print_job_exits_1_on_an_arm_error_and_on_the_timeout(cell, cube_stl, tm
     s = Session([], cell, model=cube_stl, out=str(tmp_path), arms=list(cell.arms))
     assert s.menu.print_job(timeout=60) == EXIT_FAILED
     assert s.errors == ["print failed: timed out after 60 s waiting for kinova (R1) silent, ur10 (R2) silent"]
+    # the default: 600 s + twice the estimate at the clock's pace (here 4 simulated s per wall s)
+    s = Session([], cell, model=cube_stl, out=str(tmp_path), arms=list(cell.arms), speed=4.0)
+    assert s.menu.print_job() == EXIT_FAILED
+    budget = 600 + 2 * max(s.menu.print_times.values()) / 4
+    assert s.errors == ["print failed: timed out after %.0f s waiting for kinova (R1) silent, ur10 (R2) silent"
+                        % budget], (s.errors, budget)
 
 
 def test_print_job_exits_2_on_a_bad_model_with_one_line(cell, tmp_path):
@@ -482,6 +488,22 @@ def test_flags(cell):
     assert args.print_job and args.model is None and menu_from_args(args, FakeLink(), cell).timeout is None
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--mode", "parallel"])
+
+
+def test_the_default_timeout_follows_the_clocks_pace(cell):
+    """demo.launch passes --timeout=auto: 600 s plus twice the estimate, in wall
+    s at the clock's pace (the demo at speed:=4 was cut off by a fixed 1800 s
+    after half of its 2,264 wall s)."""
+    assert build_parser().parse_args(["--timeout=auto"]).timeout is None
+    assert build_parser().parse_args(["--timeout=12.5"]).timeout == 12.5
+    for bad in ("0", "-3", "soon"):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(["--timeout=" + bad])
+    assert print_timeout_s(9055.0, 4.0) == pytest.approx(600 + 2 * 9055.0 / 4)
+    assert print_timeout_s(9055.0, None) == pytest.approx(600 + 2 * 9055.0)     # max or real: as at speed 1
+    assert print_timeout_s(100.0, 0.5) == pytest.approx(600 + 2 * 100.0 / 0.5)
+    menu = menu_from_args(build_parser().parse_args(["--print"]), FakeLink(), cell, speed=4.0)
+    assert menu.speed == 4.0
 
 
 # ------------------------------------------------------------------ the link

@@ -272,6 +272,20 @@ class PrintRecorder:
         except (OSError, ValueError):
             return None
 
+    def timeout_s(self, speed):
+        """The wall s this run's job may take by default
+        (:func:`ambots.frontend.print_timeout_s` of job.json's makespan
+        estimate, else its longest arm's print time, at the clock's pace
+        ``speed``), or None before job.json is written."""
+        from ambots.frontend import print_timeout_s
+        job = self.job()
+        if job is None:
+            return None
+        estimate = (job.get("plan") or {}).get("makespan_estimate_s")
+        if not estimate:
+            estimate = max((a.get("print_time_s", 0.0) for a in (job.get("arms") or {}).values()), default=0.0)
+        return print_timeout_s(estimate, speed)
+
     def done(self, arms=None):
         """(finished, failed): every arm of ``arms`` (default: the arms with
         a program in this run's job.json -- the planner may give the whole
