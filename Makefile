@@ -23,12 +23,13 @@ APT_PACKAGES := ros-core catkin python3-rospy python3-roslaunch python3-rostest 
 # the venv first on PATH (done by the package's catkin env hook)
 ROSENV := source $(WS)/devel/setup.bash &&
 
-.PHONY: help setup apt venv workspace ws-path apt-packages test unit rostest bench faults demo print clean
+.PHONY: help setup apt venv workspace ws-path apt-packages test unit rostest soak bench faults demo print clean
 
 help:
 	@echo "make setup  - install what is missing (apt, .venv, catkin workspace)"
 	@echo "make demo   - set up, then run the demo headless; outputs in out/demo"
 	@echo "make test   - set up, then run every test (pytest + rostest)"
+	@echo "make soak   - set up, then run the long tests (the demo at speed:=4, about 40 min)"
 	@echo "make bench  - set up, then run the benchmarks"
 	@echo "make faults - set up, then measure the fault figures (faults, kill -9, slowed arm, bad input)"
 	@echo "make print MODEL=path OUT=dir [CELL= MODE= SLICER=] - print any model like the demo"
@@ -70,7 +71,11 @@ $(WS)/devel/.done: package.xml CMakeLists.txt setup.py $(wildcard nodes/* tests/
 	touch $@
 
 test: setup
-	$(ROSENV) cd $(ROOT) && $(PY) -m pytest tests
+	$(ROSENV) cd $(ROOT) && $(PY) -m pytest tests --ignore=tests/soak
+
+# the long tests (tests/soak: the demo at speed:=4, about 40 min of wall time)
+soak: setup
+	$(ROSENV) cd $(ROOT) && $(PY) -m pytest tests/soak
 
 unit: setup
 	$(ROSENV) cd $(ROOT) && $(PY) -m pytest tests/unit
