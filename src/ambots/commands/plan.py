@@ -37,9 +37,11 @@ def plan_job(model, cell, arms=None, slicer="builtin", mode="concurrent", seam="
     rep = report(result, motion, job, wall_time_s=time.perf_counter() - t0)
     rep["slice_wall_time_s"] = round(t_job, 3)
     rep["sim_wall_time_s"] = round(result.wall_time_s, 3)
+    deposit = deposit_of(result)
+    rep["seam"] = job.seam
+    rep["seam_bonded_share"] = seam_report(job, deposit)
     if out:
         write_job(job, out)
-        deposit = deposit_of(result)
         if len(deposit):
             deposit.export(os.path.join(out, "deposit.ply"),
                            colours={n: r.arm.profile.colour for n, r in result.runners.items()}, scale=1000.0)
@@ -47,6 +49,21 @@ def plan_job(model, cell, arms=None, slicer="builtin", mode="concurrent", seam="
         with open(os.path.join(out, "report.json"), "w") as f:
             json.dump(rep, f, indent=2)
     return rep
+
+
+def seam_report(job, deposit, settings=None):
+    """{"a/b": {"bonded_share", "samples"}} of every seam between the job's
+    parts in ``deposit`` (:func:`ambots.seams.bonded_share`); {} for a
+    one-arm plan."""
+    from ambots.mesh import to_manifold
+    from ambots.seams import bonded_share
+    from ambots.slicer import SliceSettings, layer_heights
+    if len([p for p in job.parts if not p.empty]) < 2:
+        return {}
+    s = settings or SliceSettings()
+    model = to_manifold(job.mesh)
+    z_tops, heights = layer_heights(float(model.bounding_box()[5]), s)
+    return bonded_share(model, job.parts, deposit, job.cell.bed.pose, z_tops, heights, s.bead_width_mm)
 
 
 def deposit_of(result, layer_height_m=None):
@@ -92,6 +109,9 @@ def run(args):
     from ambots.job import plan_lines
     for line in plan_lines(rep.get("plan")):
         print("  " + line)
+    for pair, v in rep["seam_bonded_share"].items():
+        print("  seam %s (%s): bonded share %.3f of %d points of the seam face" % (
+            pair, rep["seam"], v["bonded_share"], v["samples"]))
     print("  collisions: %s; closest approach of two arms: %s mm" % (rep["collisions"], rep["min_clearance_mm"]))
     print("  %-8s %7s %11s %10s %9s %9s %5s %8s" % ("arm", "moves", "extrude mm", "travel mm", "print s",
                                                  "idle s", "ik!", "dev mm"))

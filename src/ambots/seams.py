@@ -1,0 +1,245 @@
+"""Seams between the arms' parts: the layer-by-layer interlock, and how much
+of a seam's face the deposit bonds.
+
+**Interlock.**  Two arms' parts that simply meet at a vertical plane (the
+``straight`` seam) are two walls printed side by side: the plane carries a
+junction of two beads that merely touch on every layer, the weakest plane
+of the print.  The interlock staggers the junction layer by layer, as
+masonry staggers its joints: on even layers (the slicer's, counted from
+the bed) the part of the lower-indexed arm of every pair reaches ``d``
+past the plane and its neighbour stops there; on odd layers the other way
+round.  Each layer's junction then lies ``2 d`` away from the junctions of
+the layers above and below, which bridge it, and each arm's layer laps the
+other arm's layers above and below over ``2 d`` (an interlayer bond across
+the seam, like Cura's and PrusaSlicer's multi-material interlocking, which
+alternate the owner of the boundary band every few layers).  With several
+arms the order of the arms is reversed every layer: the earlier arm in the
+order takes its cell grown by ``d`` into every later arm's, minus what the
+earlier arms took, so the parts of one layer always tile it.
+
+``d`` (:func:`interlock_depth_mm`) is half a bead plus one bead spacing:
+the centre line of the second perimeter from the boundary.  So on every
+layer the seam plane runs along the middle of one wall bead of whichever
+arm owns that layer there (bonded, with margin), the band of ``2 d`` around
+the plane is wall or solid skin on both sides (the slicer sees the steps as
+tops and bottoms), and no perimeter junction of one layer lies on another
+layer's.  The slabs follow the slicer's layers
+(:func:`ambots.slicer.layer_heights`), so each sliced layer falls wholly in
+one slab.
+
+**Bonded share** (:func:`bonded_share`): the seam face between two parts
+(the seam plane inside the model where those two parts meet) sampled at
+every layer's mid-height, one point every ``step_mm`` along the seam; a
+point is bonded when one bead's box (:mod:`ambots.deposit`) contains the
+two points a quarter bead width on either side of it (material continuous
+across the plane), not bonded when the plane only runs where beads meet
+side by side, or through a gap.
+
+Units: millimetres in the bed frame (the G-code frame).
+"""
+import numpy as np
+
+__all__ = ["SEAMS", "seam_kind", "interlock_depth_mm", "interlock_pieces", "seam_samples", "bonded_mask",
+           "bonded_share", "deposit_beads_mm"]
+
+#: the seams a job takes (``overlap``: the issue's name of the interlock)
+SEAMS = ("straight", "interlock", "overlap")
+
+
+def seam_kind(seam):
+    """``straight`` or ``interlock`` (``overlap`` is the interlock);
+    ValueError naming the field otherwise."""
+    if seam not in SEAMS:
+        raise ValueError("seam must be one of %s, got %r" % (", ".join(SEAMS), seam))
+    return "straight" if seam == "straight" else "interlock"
+
+
+def interlock_depth_mm(bead_width, layer_height):
+    """How far past the seam plane a part reaches on its layers, mm: half a
+    bead plus one bead spacing (the slicer's, ``w - h (1 - pi/4)``), the
+    centre line of a part's second perimeter."""
+    return bead_width / 2.0 + (bead_width - layer_height * (1.0 - np.pi / 4.0))
+
+
+def _slabs(z_tops, heights, lo, hi, parity):
+    """One manifold of the layers of ``parity`` (0: even, 1: odd) as boxes
+    over the xy box ``lo``..``hi`` (mm); the first layer reaches down to
+    below the model, the last up above it."""
+    import manifold3d as m3
+    boxes = []
+    for k in range(parity, len(z_tops), 2):
+        z0 = z_tops[k] - heights[k] if k > 0 else -1e3
+        z1 = z_tops[k] if k < len(z_tops) - 1 else 1e4
+        boxes.append(m3.Manifold.cube([hi[0] - lo[0], hi[1] - lo[1], z1 - z0]).translate([lo[0], lo[1], z0]))
+    if not boxes:
+        return m3.Manifold()
+    return m3.Manifold.batch_boolean(boxes, m3.OpType.Add) if len(boxes) > 1 else boxes[0]
+
+
+def _ordered_cells(model, planes, order, d):
+    """The pieces of ``model`` (Manifold) for one layer parity: part ``m``
+    keeps its half-spaces ``planes[m]`` ([(n, off)], one per other part in
+    index order), grown by ``d`` towards the parts after it in ``order``,
+    minus what the parts before it took.  A list in part index order."""
+    n_parts = len(planes)
+    out, taken = [None] * n_parts, None
+    for rank, m in enumerate(order):
+        later = set(order[rank + 1:])
+        others = [j for j in range(n_parts) if j != m]
+        piece = model
+        for j, (nrm, off) in zip(others, planes[m]):
+            piece = piece.trim_by_plane(list(map(float, nrm)), float(off) - (d if j in later else 0.0))
+        if taken is not None:
+            piece = piece - taken
+        out[m] = piece
+        taken = piece if taken is None else taken + piece
+    return out
+
+
+def interlock_pieces(model, planes, d, z_tops, heights):
+    """The parts of an interlocking seam: ``model`` (manifold3d.Manifold,
+    mm), ``planes[i]`` part i's half-spaces of the power diagram ([(n, off)]
+    kept side n . p >= off, one per other part in index order), ``d`` mm,
+    the slicer's layers ``z_tops``, ``heights`` (L,) mm.  On even layers
+    the arms' order is 0, 1, ..., on odd layers reversed (see the module
+    docstring).  Returns one closed Manifold per part; they tile the model."""
+    import manifold3d as m3
+    bb = model.bounding_box()
+    lo, hi = np.array(bb[:2]) - 10.0, np.array(bb[3:5]) + 10.0
+    n_parts = len(planes)
+    even = _ordered_cells(model ^ _slabs(z_tops, heights, lo, hi, 0), planes, list(range(n_parts)), d)
+    odd = _ordered_cells(model ^ _slabs(z_tops, heights, lo, hi, 1), planes, list(range(n_parts))[::-1], d)
+    return [m3.Manifold.batch_boolean([a, b], m3.OpType.Add) for a, b in zip(even, odd)]
+
+
+# ------------------------------------------------------------ bonded share
+
+def deposit_beads_mm(deposit, bed_pose):
+    """Every arm's beads of a :class:`ambots.deposit.Deposit` (world frame,
+    m) in the bed frame, mm: (starts (K, 3), ends (K, 3), widths (K,),
+    heights (K,)), the arms' beads together."""
+    T = np.linalg.inv(np.asarray(bed_pose, dtype=float))
+    chunks = [deposit.segments(a) for a in deposit.arms]
+    if not chunks:
+        z = np.zeros((0, 3))
+        return z, z, np.zeros(0), np.zeros(0)
+    s = np.concatenate([b.starts for b in chunks]) @ T[:3, :3].T + T[:3, 3]
+    e = np.concatenate([b.ends for b in chunks]) @ T[:3, :3].T + T[:3, 3]
+    area = np.concatenate([b.area for b in chunks])
+    h = np.concatenate([b.height for b in chunks])
+    return s * 1e3, e * 1e3, area / h * 1e3, h * 1e3
+
+
+def _line_intervals(polygons, c0, u, n2):
+    """Parameter intervals [(t0, t1)] of the line c0 + t u inside the
+    polygons (even-odd rule; ``n2`` the line's normal)."""
+    ts = []
+    for poly in polygons:
+        P = np.asarray(poly, dtype=float).reshape(-1, 2)
+        if len(P) < 3:
+            continue
+        Q = np.roll(P, -1, axis=0)
+        da, db = (P - c0) @ n2, (Q - c0) @ n2
+        cross = (da < 0) != (db < 0)
+        s = da[cross] / (da[cross] - db[cross])
+        X = P[cross] + s[:, None] * (Q[cross] - P[cross])
+        ts.extend(((X - c0) @ u).tolist())
+    ts = np.sort(ts)
+    return list(zip(ts[0::2], ts[1::2]))
+
+
+def seam_samples(model, planes, z_tops, heights, step_mm=0.2):
+    """Sample points of every seam face: ``model`` (Manifold, mm), ``planes``
+    {(a, b): (n, o)} the seam plane between parts a and b seen from a (n . p
+    - o >= 0 on a's side; :func:`ambots.coordinate.zones.seam_planes`).
+    For each pair a < b (by name), the points of the plane inside the
+    model's section at each layer's mid-height, every ``step_mm`` along the
+    plane, where a and b are the parts meeting (on a's side of a's other
+    seams, on b's side of b's).  Returns {(a, b): (points (M, 3), normal
+    (3,))}."""
+    out = {}
+    names = sorted({a for a, _ in planes} | {b for _, b in planes})
+    sections = [(z_tops[k] - heights[k] / 2.0, model.slice(float(z_tops[k] - heights[k] / 2.0)).to_polygons())
+                for k in range(len(z_tops))]
+    for a in names:
+        for b in names:
+            if not (a < b and (a, b) in planes and (b, a) in planes):
+                continue
+            n, o = planes[a, b]
+            n2 = np.asarray(n, dtype=float)[:2]
+            n2 = n2 / np.linalg.norm(n2)
+            u, c0 = np.array([-n2[1], n2[0]]), n2 * o
+            pts = []
+            for z, polys in sections:
+                for t0, t1 in _line_intervals(polys, c0, u, n2):
+                    t = np.arange(t0 + step_mm / 2.0, t1, step_mm)
+                    xy = c0 + t[:, None] * u
+                    pts.append(np.column_stack([xy, np.full(len(t), z)]))
+            P = np.concatenate(pts) if pts else np.zeros((0, 3))
+            keep = np.ones(len(P), dtype=bool)
+            for (x, y), (nn, oo) in planes.items():
+                if (x in (a, b)) and y not in (a, b):
+                    keep &= P @ np.asarray(nn, dtype=float) - oo >= -1e-6
+            out[a, b] = (P[keep], np.array([n2[0], n2[1], 0.0]))
+    return out
+
+
+def bonded_mask(points, normal, beads, margin_mm, chunk=2000):
+    """(M,) bool: is each point of a seam face bonded, i.e. does one bead's
+    box contain both ``points +- margin_mm * normal``?  ``beads``: (starts,
+    ends, widths, heights) mm as :func:`deposit_beads_mm` gives them (the
+    path is a box's top edge; its width across, horizontal)."""
+    S, E, W, H = beads
+    P = np.asarray(points, dtype=float).reshape(-1, 3)
+    out = np.zeros(len(P), dtype=bool)
+    if not len(P) or not len(S):
+        return out
+    n2 = np.asarray(normal, dtype=float)[:2]
+    d = E[:, :2] - S[:, :2]
+    L = np.linalg.norm(d, axis=1)
+    ok = L > 1e-9
+    S, E, W, H, d, L = S[ok], E[ok], W[ok], H[ok], d[ok], L[ok]
+    along = d / L[:, None]
+    across = np.column_stack([-along[:, 1], along[:, 0]])
+    ztop = np.maximum(S[:, 2], E[:, 2])
+    zbot = np.minimum(S[:, 2], E[:, 2]) - H
+    for z in np.unique(P[:, 2]):                  # one layer's points against that layer's beads
+        rows = np.flatnonzero(P[:, 2] == z)
+        k = np.flatnonzero((zbot <= z) & (ztop >= z))
+        if not len(k):
+            continue
+        for i in range(0, len(rows), chunk):
+            p = P[rows[i:i + chunk], :2]
+            inside = np.ones((len(p), len(k)), dtype=bool)
+            for sign in (1.0, -1.0):
+                rel = (p + sign * margin_mm * n2)[:, None, :] - S[None, k, :2]
+                a = np.einsum("mkj,kj->mk", rel, along[k])
+                c = np.einsum("mkj,kj->mk", rel, across[k])
+                inside &= (a >= 0) & (a <= L[None, k]) & (np.abs(c) <= W[None, k] / 2.0)
+            out[rows[i:i + chunk]] = inside.any(axis=1)
+    return out
+
+
+def bonded_share(model, parts, deposit, bed_pose, z_tops, heights, bead_width, step_mm=0.2):
+    """{"a/b": {"bonded_share": 0..1, "samples": M}} for every seam between
+    two of ``parts`` (:class:`ambots.partition.Part`) in ``deposit`` (world
+    frame, m; the bed's pose ``bed_pose`` 4x4 maps the bed frame to it):
+    points of the seam face (:func:`seam_samples`) bonded by one bead with a
+    margin of a quarter ``bead_width`` (mm) on both sides
+    (:func:`bonded_mask`)."""
+    from ambots.coordinate.zones import seam_planes
+    live = [p for p in parts if not p.empty]
+    if len(live) < 2:
+        return {}
+    beads = deposit_beads_mm(deposit, bed_pose)
+    out = {}
+    for (a, b), (P, n) in seam_samples(model, seam_planes(live), z_tops, heights, step_mm).items():
+        if not len(P):
+            continue
+        # only the beads near the plane can straddle it
+        o = float(P[0] @ n)
+        near = (np.minimum(beads[0] @ n, beads[1] @ n) - o <= bead_width) & \
+               (np.maximum(beads[0] @ n, beads[1] @ n) - o >= -bead_width)
+        mask = bonded_mask(P, n, tuple(x[near] for x in beads), bead_width / 4.0)
+        out["%s/%s" % (a, b)] = {"bonded_share": round(float(mask.mean()), 4), "samples": int(len(P))}
+    return out
