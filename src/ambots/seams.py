@@ -66,33 +66,64 @@ def _slabs(z_tops, heights, lo, hi, parity):
     over the xy box ``lo``..``hi`` (mm); the first layer reaches down to
     below the model, the last up above it."""
     import manifold3d as m3
+    # boundaries on a grid of 2^-20 mm, so z0 + (z1 - z0) is z1 exactly and
+    # neighbouring slabs touch without a sliver between them
+    grid = lambda z: float(np.round(z * 2.0 ** 20) / 2.0 ** 20)
     boxes = []
     for k in range(parity, len(z_tops), 2):
-        z0 = z_tops[k] - heights[k] if k > 0 else -1e3
-        z1 = z_tops[k] if k < len(z_tops) - 1 else 1e4
+        z0 = grid(z_tops[k - 1]) if k > 0 else -1e4
+        z1 = grid(z_tops[k]) if k < len(z_tops) - 1 else 1e4
         boxes.append(m3.Manifold.cube([hi[0] - lo[0], hi[1] - lo[1], z1 - z0]).translate([lo[0], lo[1], z0]))
     if not boxes:
         return m3.Manifold()
     return m3.Manifold.batch_boolean(boxes, m3.OpType.Add) if len(boxes) > 1 else boxes[0]
 
 
-def _ordered_cells(model, planes, order, d):
-    """The pieces of ``model`` (Manifold) for one layer parity: part ``m``
-    keeps its half-spaces ``planes[m]`` ([(n, off)], one per other part in
-    index order), grown by ``d`` towards the parts after it in ``order``,
-    minus what the parts before it took.  A list in part index order."""
+def _clip(poly, nrm, off):
+    """The convex polygon ``poly`` (K, 2) cut to n . p >= off (Sutherland-Hodgman)."""
+    out = []
+    n2 = np.asarray(nrm, dtype=float)[:2]
+    for p, q in zip(poly, np.roll(poly, -1, axis=0)):
+        dp, dq = p @ n2 - off, q @ n2 - off
+        if dp >= 0:
+            out.append(p)
+        if (dp >= 0) != (dq >= 0):
+            out.append(p + dp / (dp - dq) * (q - p))
+    return np.array(out).reshape(-1, 2)
+
+
+#: pieces of a layer's cell smaller than this (mm^2) are slivers left by the
+#: booleans where several cells meet, not material: dropped
+SLIVER_MM2 = 1e-3
+
+
+def _solid(cs):
+    """``cs`` (CrossSection) without its sliver pieces (:data:`SLIVER_MM2`)."""
+    import manifold3d as m3
+    pieces = [p for p in cs.decompose() if p.area() >= SLIVER_MM2]
+    return m3.CrossSection.batch_boolean(pieces, m3.OpType.Add) if pieces else m3.CrossSection()
+
+
+def _ordered_cells(rect, planes, order, d):
+    """The layer's cells (manifold3d.CrossSection, xy mm) for one order of
+    the parts: part ``m`` keeps its half-planes ``planes[m]`` ([(n, off)],
+    one per other part in index order) inside the rectangle ``rect`` (4, 2),
+    grown by ``d`` towards the parts after it in ``order``, minus what the
+    parts before it took.  A list in part index order; they tile ``rect``."""
+    import manifold3d as m3
     n_parts = len(planes)
     out, taken = [None] * n_parts, None
     for rank, m in enumerate(order):
         later = set(order[rank + 1:])
         others = [j for j in range(n_parts) if j != m]
-        piece = model
+        poly = np.asarray(rect, dtype=float)
         for j, (nrm, off) in zip(others, planes[m]):
-            piece = piece.trim_by_plane(list(map(float, nrm)), float(off) - (d if j in later else 0.0))
+            poly = _clip(poly, nrm, float(off) - (d if j in later else 0.0))
+        cell = m3.CrossSection([poly.tolist()]) if len(poly) >= 3 else m3.CrossSection()
         if taken is not None:
-            piece = piece - taken
-        out[m] = piece
-        taken = piece if taken is None else taken + piece
+            cell = _solid(cell - taken)
+        out[m] = cell
+        taken = cell if taken is None else taken + cell
     return out
 
 
@@ -102,32 +133,71 @@ def interlock_pieces(model, planes, d, z_tops, heights):
     kept side n . p >= off, one per other part in index order), ``d`` mm,
     the slicer's layers ``z_tops``, ``heights`` (L,) mm.  On even layers
     the arms' order is 0, 1, ..., on odd layers reversed (see the module
-    docstring).  Returns one closed Manifold per part; they tile the model."""
+    docstring).  Returns one closed Manifold per part; they tile the model.
+
+    Each part is the model cut to (its cell on every layer, a prism) plus
+    (its even-layer cell x the even slabs) plus (its odd-layer cell x the
+    odd slabs): the slabs of one part that touch also overlap that prism,
+    so the part is one solid, not slabs resting on each other."""
     import manifold3d as m3
     bb = model.bounding_box()
     lo, hi = np.array(bb[:2]) - 10.0, np.array(bb[3:5]) + 10.0
+    rect = [[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]]
     n_parts = len(planes)
-    even = _ordered_cells(model ^ _slabs(z_tops, heights, lo, hi, 0), planes, list(range(n_parts)), d)
-    odd = _ordered_cells(model ^ _slabs(z_tops, heights, lo, hi, 1), planes, list(range(n_parts))[::-1], d)
-    return [m3.Manifold.batch_boolean([a, b], m3.OpType.Add) for a, b in zip(even, odd)]
+    even = _ordered_cells(rect, planes, list(range(n_parts)), d)
+    odd = _ordered_cells(rect, planes, list(range(n_parts))[::-1], d)
+    slabs = [_slabs(z_tops, heights, lo, hi, parity) for parity in (0, 1)]
+    prism = lambda cs: m3.Manifold.extrude(cs, 2e4).translate([0.0, 0.0, -1e4])
+    out = []
+    for e, o in zip(even, odd):
+        region = m3.Manifold.batch_boolean([prism(_solid(e ^ o)), slabs[0] ^ prism(e), slabs[1] ^ prism(o)],
+                                           m3.OpType.Add)
+        part = model ^ region
+        pieces = part.decompose()
+        if len(pieces) > 1:          # a boolean's zero-volume sliver where three cells meet: not material
+            keep = [q for q in pieces if q.volume() >= SLIVER_MM2 * 1e-3]
+            part = m3.Manifold.batch_boolean(keep, m3.OpType.Add) if keep else m3.Manifold()
+        out.append(part)
+    return out
 
 
 # ------------------------------------------------------------ bonded share
 
+def _join_pieces(S, E, W, H, tol_mm=1e-3, cos_min=0.9999):
+    """Consecutive beads that continue one another (the next starts where
+    this one ends, in the same direction, as wide and as high) joined into
+    one: the runners lay a G-code move as several pieces, one extrusion.
+    Arrays as :func:`deposit_beads_mm`'s, one arm's, in laying order."""
+    if len(S) < 2:
+        return S, E, W, H
+    d = E - S
+    u = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    cont = ((np.linalg.norm(S[1:] - E[:-1], axis=1) <= tol_mm) & (np.sum(u[1:] * u[:-1], axis=1) >= cos_min)
+            & (np.abs(W[1:] - W[:-1]) <= 0.02 * W[:-1]) & (np.abs(H[1:] - H[:-1]) <= 1e-6))
+    first = np.concatenate([[True], ~cont])
+    start = np.flatnonzero(first)
+    last = np.concatenate([start[1:] - 1, [len(S) - 1]])
+    L = np.linalg.norm(d, axis=1)
+    width = np.add.reduceat(W * L, start) / np.maximum(np.add.reduceat(L, start), 1e-12)
+    return S[start], E[last], width, H[start]
+
+
 def deposit_beads_mm(deposit, bed_pose):
     """Every arm's beads of a :class:`ambots.deposit.Deposit` (world frame,
     m) in the bed frame, mm: (starts (K, 3), ends (K, 3), widths (K,),
-    heights (K,)), the arms' beads together."""
+    heights (K,)), the arms' beads together; the pieces of one extrusion
+    joined (:func:`_join_pieces`)."""
     T = np.linalg.inv(np.asarray(bed_pose, dtype=float))
-    chunks = [deposit.segments(a) for a in deposit.arms]
-    if not chunks:
+    out = []
+    for arm in deposit.arms:
+        b = deposit.segments(arm)
+        s = (b.starts @ T[:3, :3].T + T[:3, 3]) * 1e3
+        e = (b.ends @ T[:3, :3].T + T[:3, 3]) * 1e3
+        out.append(_join_pieces(s, e, b.area / b.height * 1e3, b.height * 1e3))
+    if not out:
         z = np.zeros((0, 3))
         return z, z, np.zeros(0), np.zeros(0)
-    s = np.concatenate([b.starts for b in chunks]) @ T[:3, :3].T + T[:3, 3]
-    e = np.concatenate([b.ends for b in chunks]) @ T[:3, :3].T + T[:3, 3]
-    area = np.concatenate([b.area for b in chunks])
-    h = np.concatenate([b.height for b in chunks])
-    return s * 1e3, e * 1e3, area / h * 1e3, h * 1e3
+    return tuple(np.concatenate(x) for x in zip(*out))
 
 
 def _line_intervals(polygons, c0, u, n2):
