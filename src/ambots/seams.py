@@ -313,3 +313,47 @@ def bonded_share(model, parts, deposit, bed_pose, z_tops, heights, bead_width, s
         mask = bonded_mask(P, n, tuple(x[near] for x in beads), bead_width / 4.0)
         out["%s/%s" % (a, b)] = {"bonded_share": round(float(mask.mean()), 4), "samples": int(len(P))}
     return out
+
+
+def lap_order(by_arm, planes, reach_mm, z_tops):
+    """Does each arm lay its beads of the lap band of layer n (within
+    ``reach_mm`` of a seam plane, e.g. d + a bead width) only after its
+    neighbour has laid its beads of that band in layer n - 1?  With an
+    interlock the band of one arm's layer n rests on the other arm's layer
+    n - 1.  ``by_arm``: {arm: (p0 (K, 3), p1 (K, 3) bed frame mm, t (K,) s
+    when laid)}; ``planes`` as :func:`seam_samples` takes them; ``z_tops``
+    the slicer's layer tops (mm).  Returns {"a/b": {"layers": checked
+    (arm, layer) pairs, "early": how many of them started before the
+    neighbour's layer below was done}}."""
+    z_tops = np.asarray(z_tops, dtype=float)
+    out = {}
+    names = sorted(by_arm)
+    for a in names:
+        for b in names:
+            if not (a < b and (a, b) in planes and (b, a) in planes):
+                continue
+            n, o = planes[a, b]
+            n = np.asarray(n, dtype=float)
+            first, last = {}, {}
+            for arm in (a, b):
+                p0, p1, t = (np.asarray(x, dtype=float) for x in by_arm[arm])
+                if not len(t):
+                    continue
+                s0, s1 = p0 @ n - o, p1 @ n - o
+                near = (np.minimum(s0, s1) <= reach_mm) & (np.maximum(s0, s1) >= -reach_mm)
+                mid = (p0 + p1) / 2.0
+                for (x, y), (nn, oo) in planes.items():      # at this seam, not where the plane runs elsewhere
+                    if x == arm and y not in (a, b):
+                        near &= mid @ np.asarray(nn, dtype=float) - oo >= -reach_mm
+                layer = np.argmin(np.abs(p1[:, 2][:, None] - z_tops[None]), axis=1)
+                for k in np.unique(layer[near]):
+                    sel = near & (layer == k)
+                    first[arm, k], last[arm, k] = float(t[sel].min()), float(t[sel].max())
+            checked = early = 0
+            for (arm, k), t0 in first.items():
+                other = b if arm == a else a
+                if (other, k - 1) in last:
+                    checked += 1
+                    early += t0 < last[other, k - 1]
+            out["%s/%s" % (a, b)] = {"layers": checked, "early": early}
+    return out

@@ -227,8 +227,32 @@ def test_plan_reports_the_bonded_share_of_the_seam_and_no_collisions(plans, seam
         assert share["bonded_share"] <= 0.02
     else:
         assert share["bonded_share"] >= 0.9
+        # each arm's layer near the seam rests on the neighbour's layer below, laid before it
+        assert rep["seam_lap_order"] == {"kinova/ur10": {"layers": 18, "early": 0}}
 
 
 def test_the_interlock_costs_no_makespan(plans):
     """Same work, same zones: within 2 % of the straight seam's makespan."""
     assert plans["interlock"][0]["makespan_s"] == pytest.approx(plans["straight"][0]["makespan_s"], rel=0.02)
+
+
+def test_lap_order_counts_a_layer_begun_before_the_neighbours_layer_below():
+    """Two arms either side of x = 0, two layers (tops 0.2, 0.4 mm): the
+    Kinova (x < 0) lays its layer 0 band at t = 1, the UR10 its layer 0 at
+    t = 2; the Kinova's layer 1 at t = 3 is in order, the UR10's layer 1 at
+    t = 2.5 is in order too (the Kinova's layer 0 was done at 1), but at
+    t = 0.5 it is early; far from the seam nothing counts."""
+    from ambots.seams import lap_order
+    planes = {("kinova", "ur10"): (np.array([-1.0, 0, 0]), 0.0), ("ur10", "kinova"): (np.array([1.0, 0, 0]), 0.0)}
+    seg = lambda x0, x1, z: (np.array([[x0, 0.0, z]]), np.array([[x1, 0.0, z]]))
+
+    def arm(items):
+        p0 = np.concatenate([seg(*i[:3])[0] for i in items])
+        p1 = np.concatenate([seg(*i[:3])[1] for i in items])
+        return p0, p1, np.array([i[3] for i in items])
+
+    kinova = arm([(-5, 0.4, 0.2, 1.0), (-5, -0.5, 0.4, 3.0), (-50, -40, 0.4, 0.1)])
+    for t_ur10_l1, early in ((2.5, 0), (0.5, 1)):
+        ur10 = arm([(5, 0.5, 0.2, 2.0), (5, -0.4, 0.4, t_ur10_l1), (40, 50, 0.2, 9.0)])
+        got = lap_order({"kinova": kinova, "ur10": ur10}, planes, 1.0, [0.2, 0.4])
+        assert got == {"kinova/ur10": {"layers": 2, "early": early}}
