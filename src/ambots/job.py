@@ -264,11 +264,13 @@ def split(mesh, cell, arms, seam="straight", settings=None, reach=None):
     :func:`ambots.partition.partition`'s ``reach_cache``)."""
     from ambots.mesh import to_manifold
     from ambots.partition import PrintEstimate, partition
-    est = PrintEstimate()
-    if settings is not None:
-        est = PrintEstimate(settings.bead_width_mm, settings.layer_height_mm, settings.perimeters,
-                            settings.infill_density)
-    return partition(to_manifold(mesh), cell, arms, seam=seam, est=est, reach_cache=reach)
+    from ambots.slicer import SliceSettings, layer_heights
+    s = settings or SliceSettings()
+    est = PrintEstimate(s.bead_width_mm, s.layer_height_mm, s.perimeters, s.infill_density)
+    model = to_manifold(mesh)
+    # an interlocking seam's slabs are the slicer's layers
+    layers = layer_heights(float(model.bounding_box()[5]), s)
+    return partition(model, cell, arms, seam=seam, est=est, reach_cache=reach, layers=layers)
 
 
 def slice_parts(parts, slicer="builtin", settings=None):

@@ -16,9 +16,13 @@ weights w_i move the planes until the arms' estimated print times balance.
 The cuts are manifold3d half-space trims, so the parts are closed volumes
 whose union is the model.
 
-Seams: ``straight`` (the parts meet at the plane) or ``overlap`` (each part
-reaches half a bead width past the plane, so neighbours overlap by one bead
-width and the seam fuses).
+Seams: ``straight`` (the parts meet at the plane) or ``interlock`` (also
+called ``overlap``): layer by layer the boundary alternates ``d`` either
+side of the plane, so each arm's layers lap its neighbour's and no
+vertical plane carries a junction on every layer (:mod:`ambots.seams`;
+``d`` = :func:`ambots.seams.interlock_depth_mm`).  The parts still tile the
+model: no volume is printed twice.  A part's ``planes`` are then the
+planes it never crosses (the seam plane moved ``d`` into the neighbour).
 
 Units: millimetres in the bed frame (the G-code frame: origin at the centre
 of the bed's top surface, z up).
@@ -131,7 +135,7 @@ def _cut(model, planes):
 
 
 def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tolerance=1.02,
-              max_iter=80, check_reach=True, reach_cache=None):
+              max_iter=80, check_reach=True, reach_cache=None, layers=None, interlock_mm=None):
     """Split ``model`` (manifold3d.Manifold, mm, bed frame) among ``arms`` (default:
     every arm of ``cell``) and return one :class:`Part` per arm, in order.
 
@@ -142,10 +146,16 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
     by how much.  ``reach_cache``: a dict kept by the caller across calls on
     the same model (a job's plans): a corner already checked for an arm is
     not solved again.
+
+    ``seam``: ``straight``, or ``interlock`` / ``overlap`` (the same, see the
+    module docstring): then ``layers`` = (z_tops, heights) (L,) mm, the
+    slicer's layers (default: :func:`ambots.slicer.layer_heights` of the
+    default settings with ``est``'s layer height), and ``interlock_mm`` the
+    depth d (default :func:`ambots.seams.interlock_depth_mm` of ``est``).
     """
+    from ambots.seams import interlock_depth_mm, interlock_pieces, seam_kind
     arms = list(cell.arms if arms is None else arms)
-    if seam not in ("straight", "overlap"):
-        raise ValueError("seam must be 'straight' or 'overlap', got %r" % seam)
+    kind = seam_kind(seam)
     if model.is_empty() or model.volume() <= 0:
         raise MeshError("nothing to partition: the model is empty")
     if len(arms) == 1:
@@ -175,13 +185,23 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
             prev_sign = sign
             w = w - step * rel * size2
         w = best[1]
-        shift = est.bead_width / 2 if seam == "overlap" else 0.0
+        # the best round's pieces are the parts of a straight seam, and their times
+        pieces = best[2]
+        shift = 0.0
+        if kind == "interlock":
+            shift = interlock_depth_mm(est.bead_width, est.layer_height) if interlock_mm is None else interlock_mm
+            if not shift > 0:
+                raise ValueError("interlock_mm must be > 0, got %r" % interlock_mm)
+            if layers is None:
+                from ambots.slicer import SliceSettings, layer_heights
+                layers = layer_heights(float(model.bounding_box()[5]),
+                                       SliceSettings(layer_height_mm=est.layer_height,
+                                                     first_layer_height_mm=est.layer_height,
+                                                     bead_width_mm=est.bead_width))
+            pieces = interlock_pieces(model, [_planes(sites, w, i) for i in range(len(arms))], shift, *layers)
         parts = []
         for i, arm in enumerate(arms):
-            planes = _planes(sites, w, i, shift)
-            # the best round's pieces are these parts (a straight seam) and their times
-            piece = best[2][i] if shift == 0.0 else _cut(model, planes)
-            parts.append(Part(arm, piece, planes, float(best[3][i]),
+            parts.append(Part(arm, pieces[i], _planes(sites, w, i, shift), float(best[3][i]),
                               [a.name for j, a in enumerate(arms) if j != i]))
     if check_reach:
         for part in parts:

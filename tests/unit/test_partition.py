@@ -41,7 +41,7 @@ def union(parts):
 
 
 @pytest.mark.parametrize("name", sorted(MODELS))
-@pytest.mark.parametrize("seam", ["straight", "overlap"])
+@pytest.mark.parametrize("seam", ["straight", "interlock"])
 def test_parts_union_is_the_model_and_print_times_balance(cell, name, seam):
     model = MODELS[name]()
     parts = partition(model, cell, seam=seam)       # also checks every part is in its arm's reach
@@ -52,10 +52,7 @@ def test_parts_union_is_the_model_and_print_times_balance(cell, name, seam):
     times = [p.est_time_s for p in parts]
     assert max(times) / min(times) <= 1.10
     total = sum(p.volume for p in parts)
-    if seam == "straight":
-        assert total == pytest.approx(model.volume(), rel=1e-6)
-    else:
-        assert total > model.volume()      # the overlap is counted twice
+    assert total == pytest.approx(model.volume(), rel=1e-6)     # nothing printed twice
 
 
 def test_each_arm_gets_the_side_facing_it(cell):
@@ -65,11 +62,17 @@ def test_each_arm_gets_the_side_facing_it(cell):
     assert ur10.manifold.bounding_box()[0] >= -1e-9
 
 
-def test_overlap_seam_is_one_bead_wide(cell):
+def test_overlap_seam_is_the_interlock_reaching_past_the_plane_by_turns(cell):
+    """``overlap`` is the interlock: the Kinova's part reaches d = w/2 + (w -
+    h (1 - pi/4)) past the plane x = 0 on even layers and stops d before it
+    on odd ones (test_interlock checks it layer by layer)."""
     kinova, ur10 = partition(cube(), cell, seam="overlap")
-    overlap = (kinova.manifold ^ ur10.manifold)
-    lo, hi = overlap.bounding_box()[0], overlap.bounding_box()[3]
-    assert hi - lo == pytest.approx(0.45, abs=1e-6)
+    d = 0.45 / 2 + 0.45 - 0.2 * (1 - np.pi / 4)
+    assert (kinova.manifold ^ ur10.manifold).volume() <= 1e-6
+    assert kinova.manifold.bounding_box()[3] == pytest.approx(d, abs=1e-6)
+    assert ur10.manifold.bounding_box()[0] == pytest.approx(-d, abs=1e-6)
+    assert kinova.manifold.slice(0.1).bounds()[2] == pytest.approx(d, abs=1e-6)
+    assert kinova.manifold.slice(0.3).bounds()[2] == pytest.approx(-d, abs=1e-6)
 
 
 def test_one_arm_gets_everything(cell):

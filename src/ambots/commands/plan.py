@@ -37,9 +37,11 @@ def plan_job(model, cell, arms=None, slicer="builtin", mode="concurrent", seam="
     rep = report(result, motion, job, wall_time_s=time.perf_counter() - t0)
     rep["slice_wall_time_s"] = round(t_job, 3)
     rep["sim_wall_time_s"] = round(result.wall_time_s, 3)
+    deposit = deposit_of(result)
+    rep["seam"] = job.seam
+    rep["seam_bonded_share"], rep["seam_lap_order"] = seam_report(job, deposit, result)
     if out:
         write_job(job, out)
-        deposit = deposit_of(result)
         if len(deposit):
             deposit.export(os.path.join(out, "deposit.ply"),
                            colours={n: r.arm.profile.colour for n, r in result.runners.items()}, scale=1000.0)
@@ -47,6 +49,40 @@ def plan_job(model, cell, arms=None, slicer="builtin", mode="concurrent", seam="
         with open(os.path.join(out, "report.json"), "w") as f:
             json.dump(rep, f, indent=2)
     return rep
+
+
+def seam_report(job, deposit, result=None, settings=None):
+    """The job's seams in ``deposit``: ({"a/b": {"bonded_share", "samples"}}
+    (:func:`ambots.seams.bonded_share`), {"a/b": {"layers", "early"}}: with
+    the runners' ``result``, whether each arm laid its beads near the seam
+    only after its neighbour's layer below there (:func:`ambots.seams.lap_order`,
+    within the interlock's reach and a bead); ({}, {}) for a one-arm plan."""
+    import numpy as np
+
+    from ambots.coordinate.zones import seam_planes
+    from ambots.mesh import to_manifold
+    from ambots.seams import bonded_share, interlock_depth_mm, lap_order
+    from ambots.slicer import SliceSettings, layer_heights
+    live = [p for p in job.parts if not p.empty]
+    if len(live) < 2:
+        return {}, {}
+    s = settings or SliceSettings()
+    model = to_manifold(job.mesh)
+    z_tops, heights = layer_heights(float(model.bounding_box()[5]), s)
+    shares = bonded_share(model, job.parts, deposit, job.cell.bed.pose, z_tops, heights, s.bead_width_mm)
+    order = {}
+    if result is not None:
+        T = np.linalg.inv(job.cell.bed.pose)
+        bed = lambda P: (np.asarray(P) @ T[:3, :3].T + T[:3, 3]) * 1e3
+        by_arm = {}
+        for name, r in result.runners.items():
+            beads = [b for b in r.beads if len(b.e_mm)]
+            if beads:
+                by_arm[name] = (bed(np.concatenate([b.p0 for b in beads])), bed(np.concatenate([b.p1 for b in beads])),
+                                np.concatenate([b.t for b in beads]))
+        reach = interlock_depth_mm(s.bead_width_mm, s.layer_height_mm) + s.bead_width_mm
+        order = lap_order(by_arm, seam_planes(live), reach, z_tops)
+    return shares, order
 
 
 def deposit_of(result, layer_height_m=None):
@@ -96,6 +132,12 @@ def run(args):
         print("  " + unsupported_line(rep["overhang"]))
         for line in overhang_lines(rep["overhang"]):
             print("  " + line)
+    for pair, v in rep["seam_bonded_share"].items():
+        order = rep["seam_lap_order"].get(pair)
+        print("  seam %s (%s): bonded share %.3f of %d points of the seam face%s" % (
+            pair, rep["seam"], v["bonded_share"], v["samples"],
+            "; %d of %d layers begun there before the neighbour's layer below was done" % (
+                order["early"], order["layers"]) if order else ""))
     print("  collisions: %s; closest approach of two arms: %s mm" % (rep["collisions"], rep["min_clearance_mm"]))
     print("  %-8s %7s %11s %10s %9s %9s %5s %8s" % ("arm", "moves", "extrude mm", "travel mm", "print s",
                                                  "idle s", "ik!", "dev mm"))

@@ -18,7 +18,9 @@ def add_job_arguments(p, out):
                                   "chooses the fastest of all the cell's arms together and each arm alone)")
     p.add_argument("--slicer", choices=("builtin", "prusa"), default="builtin")
     p.add_argument("--mode", choices=("concurrent", "sequential"), default="concurrent")
-    p.add_argument("--seam", choices=("straight", "overlap"), default="straight")
+    p.add_argument("--seam", choices=("straight", "interlock", "overlap"), default="straight",
+                   help="between two arms' parts: straight (they meet at a plane) or interlock (the boundary "
+                        "alternates layer by layer either side of the plane; overlap is the same)")
     p.add_argument("--scale", type=float, default=1.0, help="scale factor applied to the model")
     p.add_argument("--out", default=out, help="output folder (default: %s)" % out)
 

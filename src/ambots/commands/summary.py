@@ -93,6 +93,10 @@ def summary_lines(out_dir, capture=False):
             "; closest approach of two arms %.1f mm" % clearance if clearance is not None else ""))
     else:
         lines.append("  contacts      NOT CHECKED (no executed motion was received)")
+    shares = rep.get("seam_bonded_share") or {}
+    if shares:
+        lines.append("  seam          %s: bonded share of the seam face %s" % (
+            rep.get("seam"), ", ".join("%s %.3f" % (k, v["bonded_share"]) for k, v in shares.items())))
     if capture:
         closeup = os.path.join(out_dir, "capture_closeup.png")
         lines.append("  picture       %s%s" % (png if has_png else "MISSING (%s)" % png,

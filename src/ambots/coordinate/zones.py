@@ -24,9 +24,9 @@ def seam_planes(parts):
     """The plane between every two parts, from each side: {(a, b): (n, o)}
     with a's signed distance ``n . p - o`` (mm, >= 0 on a's side), for arm
     names a != b.  ``parts[i].planes[j]`` bounds part i against the arm
-    ``parts[i].neighbours[j]``; with an overlap seam the two parts' planes
-    are half a bead apart and the plane returned is the one midway, the
-    true seam.  Planes against arms without a part here are left out."""
+    ``parts[i].neighbours[j]``; with an interlocking seam the two parts'
+    planes are 2 d apart (each reaches d past the seam on its layers) and
+    the plane returned is the one midway, the true seam.  Planes against arms without a part here are left out."""
     own = {}
     names = [p.arm.name for p in parts]
     for p in parts:
