@@ -101,14 +101,15 @@ demo: setup
 
 # any model, the same way: make print MODEL=path [CELL=...] [MODE=...] [SLICER=...] [SPEED=max] [ARMS=a,b] OUT=dir
 MODE ?= concurrent
+SEAM ?= straight
 SLICER ?= builtin
 SPEED ?= max
 print: setup
-	@[ -n "$(MODEL)" ] && [ -n "$(OUT)" ] || { echo "usage: make print MODEL=path OUT=dir [CELL=...] [MODE=...] [SLICER=...]"; exit 2; }
+	@[ -n "$(MODEL)" ] && [ -n "$(OUT)" ] || { echo "usage: make print MODEL=path OUT=dir [CELL=...] [MODE=...] [SEAM=...] [SLICER=...]"; exit 2; }
 	@mkdir -p "$(OUT)"
 	@echo "make print: $(MODEL) headless; log in $(OUT)/launch.log"
 	@$(ROSENV) roslaunch ambots demo.launch out:="$(abspath $(OUT))" model:="$(abspath $(MODEL))" \
-	  mode:=$(MODE) slicer:=$(SLICER) speed:=$(SPEED) $(if $(CELL),cell:="$(abspath $(CELL))") $(if $(ARMS),arms:="$(ARMS)") \
+	  mode:=$(MODE) seam:=$(SEAM) slicer:=$(SLICER) speed:=$(SPEED) $(if $(CELL),cell:="$(abspath $(CELL))") $(if $(ARMS),arms:="$(ARMS)") \
 	  > "$(OUT)/launch.log" 2>&1 || { tail -30 "$(OUT)/launch.log"; echo "roslaunch failed: whole log in $(OUT)/launch.log"; }
 	@echo; $(PY) -m ambots summary --capture "$(OUT)"
 

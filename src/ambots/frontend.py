@@ -813,6 +813,9 @@ def build_parser(prog="front_end"):
                         "slicer; builtin or prusa: that one, or an error (default: auto in the menu, builtin "
                         "with --print)")
     p.add_argument("--mode", choices=("concurrent", "sequential"), default="concurrent")
+    p.add_argument("--seam", choices=("straight", "interlock", "overlap"), default="straight",
+                   help="where two arms' parts meet: straight (a plane) or interlock (= overlap: the boundary "
+                        "alternates across the plane layer by layer)")
     p.add_argument("--arms", help="comma-separated arms to print with, e.g. ur10 (default: the planner chooses "
                                   "the fastest of the cell's arms together and each arm alone)")
     p.add_argument("--out", help="output folder of the programs (default: out/<model stem>)")
@@ -837,6 +840,7 @@ def menu_from_args(args, link, cell, **kw):
     # the menu slices like the original (PrusaSlicer where installed); a scripted --print job keeps
     # the same G-code on every machine unless --slicer says otherwise
     slicer = args.slicer or ("builtin" if args.print_job else "auto")
-    return Menu(link, cell, model=args.model, out=args.out, slicer=slicer, mode=args.mode, arms=arms,
+    return Menu(link, cell, model=args.model, out=args.out, slicer=slicer, mode=args.mode,
+                seam=getattr(args, "seam", "straight"), arms=arms,
                 scale=args.scale,
                 timeout=None if args.print_job else args.timeout, **kw)
