@@ -39,6 +39,7 @@ def plan_job(model, cell, arms=None, slicer="builtin", mode="concurrent", seam="
     rep["sim_wall_time_s"] = round(result.wall_time_s, 3)
     if out:
         write_job(job, out)
+        rep["repair"] = job.repair()          # with the repaired mesh's file, now written
         deposit = deposit_of(result)
         if len(deposit):
             deposit.export(os.path.join(out, "deposit.ply"),
@@ -90,6 +91,9 @@ def run(args):
         args.model, args.out, rep["cell"], rep["mode"], rep["makespan_s"],
         "finished" if rep["finished"] else "NOT finished: " + rep["reason"], rep["wall_time_s"]))
     from ambots.job import overhang_lines, plan_lines, unsupported_line
+    from ambots.repair import repair_lines
+    for line in repair_lines(rep.get("repair")):
+        print("  " + line)
     for line in plan_lines(rep.get("plan")):
         print("  " + line)
     if rep.get("overhang"):
