@@ -213,25 +213,48 @@ def solid_angle_sum(points, triangles):
 
 
 def winding_volume(closed, added, removed, samples=WINDING_SAMPLES):
-    """Volume (mm^3) of the points whose winding number with respect to the
-    open mesh ``closed - added + removed`` is >= 0.5 (see the module text).
+    """Volume (mm^3) the open mesh ``closed - added + removed`` encloses,
+    hole by hole (see the module text).
+
+    For each hole, the points whose winding number with respect to the
+    model with only that hole open is >= 0.5: ``closed`` minus the volume
+    that hole's patch changes.  Holes are judged one at a time because the
+    deficits of several holes add up: an open bottom and a small hole in the
+    top of a flat box would push a thin slab above the bottom under 0.5.
 
     ``closed``: the repaired, watertight, outward mesh; ``added`` and
-    ``removed``: what the repair added to and removed from the open mesh."""
+    ``removed``: what the repair added to and removed from the open mesh;
+    ``samples``: stratified points, shared by the holes."""
     patch = np.concatenate([added.vertices[added.faces], removed.vertices[removed.faces][:, ::-1]])
     if not len(patch):
         return float(closed.volume)
-    lo, hi = patch.reshape(-1, 3).min(axis=0), patch.reshape(-1, 3).max(axis=0)
+    holes = _patches(patch)
     pad = 1e-3 * float(np.linalg.norm(closed.extents))
-    lo = np.maximum(lo - pad, closed.bounds[0] - pad)
-    hi = np.minimum(hi + pad, closed.bounds[1] + pad)
-    n = max(2, int(round(samples ** (1.0 / 3.0))))
-    # stratified: one jittered point per cell of an n^3 grid (fixed seed: repeatable)
+    n = max(2, int(round((samples / len(holes)) ** (1.0 / 3.0))))
+    # stratified: one jittered point per cell of an n^3 grid per hole (fixed seed: repeatable)
     cells = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    jitter = np.random.default_rng(0).random(cells.shape)
-    points = lo + (cells + jitter) / n * (hi - lo)
-    inside = closed.contains(points).astype(float)
-    w_patch = solid_angle_sum(points, patch) / (4.0 * np.pi)
-    before_inside = (inside - w_patch) >= 0.5
-    box = float(np.prod(hi - lo))
-    return float(closed.volume) - box * float(np.mean(inside - before_inside))
+    rng = np.random.default_rng(0)
+    points, boxes = [], []
+    for tri in holes:
+        lo = np.maximum(tri.reshape(-1, 3).min(axis=0) - pad, closed.bounds[0] - pad)
+        hi = np.minimum(tri.reshape(-1, 3).max(axis=0) + pad, closed.bounds[1] + pad)
+        points.append(lo + (cells + rng.random(cells.shape)) / n * (hi - lo))
+        boxes.append(float(np.prod(hi - lo)))
+    inside = closed.contains(np.concatenate(points)).reshape(len(holes), -1).astype(float)
+    change = 0.0
+    for tri, p, box, ins in zip(holes, points, boxes, inside):
+        w_patch = solid_angle_sum(p, tri) / (4.0 * np.pi)
+        before_inside = (ins - w_patch) >= 0.5
+        change += box * float(np.mean(ins - before_inside))
+    return float(closed.volume) - change
+
+
+def _patches(triangles):
+    """``triangles`` ((m, 3, 3), mm) grouped into the connected patches
+    (corners shared), one (k, 3, 3) array per patch: one per hole."""
+    _, ids = np.unique(np.round(triangles.reshape(-1, 3), 9), axis=0, return_inverse=True)
+    faces = ids.reshape(-1, 3)
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
+    labels = trimesh.graph.connected_component_labels(edges, node_count=int(ids.max()) + 1)
+    face_label = labels[faces[:, 0]]
+    return [triangles[face_label == k] for k in np.unique(face_label)]
