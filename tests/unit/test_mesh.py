@@ -95,8 +95,9 @@ def test_an_open_top_is_closed_and_a_band_is_refused(tmp_path):
     mesh = load_model(path)    # a flat 48-edge hole: closed, the volume of the intact cylinder
     assert mesh.is_watertight and mesh.volume == pytest.approx(tube.volume, rel=1e-6)
     assert "not a closed volume: 48 open edges" in refusal(path, repair=False)
-    side = np.abs(tube.face_normals[:, 2]) < 0.5     # no top, no bottom: a band
-    path = write(tmp_path / "band.stl", trimesh.Trimesh(tube.vertices, tube.faces[side], process=False))
+    ring = trimesh.creation.cylinder(radius=8.0, height=4.0, sections=48)
+    side = np.abs(ring.face_normals[:, 2]) < 0.5     # no top, no bottom: a band, 2/3 of it missing
+    path = write(tmp_path / "band.stl", trimesh.Trimesh(ring.vertices, ring.faces[side], process=False))
     assert "not a closed volume: 96 open edges in 2 holes, too large to repair" in refusal(path)
 
 
