@@ -139,6 +139,27 @@ def test_two_bodies_one_with_a_hole_are_both_kept(tmp_path):
     assert report(mesh).holes_closed == 2
 
 
+@pytest.mark.parametrize("cut", ["five triangles", "a cap"])
+def test_a_large_mesh_gives_meshfix_only_the_triangles_near_the_holes(tmp_path, monkeypatch, cut):
+    import ambots.repair
+    monkeypatch.setattr(ambots.repair, "LOCAL_FILL_TRIANGLES", 100)     # 1280 triangles: the local way
+    s = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    faces = (np.delete(s.faces, [0, 77, 200, 513, 1001], axis=0) if cut == "five triangles"
+             else s.faces[s.triangles_center[:, 2] < 7.0])
+    mesh = load_model(save(tmp_path, "local.stl", s.vertices, faces))
+    assert mesh.is_watertight and mesh.body_count == 1
+    r = report(mesh)
+    if cut == "five triangles":
+        assert (r.holes_closed, r.faces_added) == (5, 5)
+        assert mesh.volume == pytest.approx(signed_volume(s.vertices, s.faces), rel=1e-6)
+    else:                          # the same as MeshFix on the whole mesh
+        monkeypatch.setattr(ambots.repair, "LOCAL_FILL_TRIANGLES", 10 ** 6)
+        whole = load_model(save(tmp_path, "whole.stl", s.vertices, faces))
+        assert r.holes_closed == 1 and r.faces_added == report(whole).faces_added
+        assert mesh.volume == pytest.approx(whole.volume, rel=1e-9)
+        assert mesh.area == pytest.approx(whole.area, rel=1e-9)
+
+
 # ------------------------------------------------------------- refused
 
 def test_a_fill_that_would_bulge_is_refused_with_the_figures(tmp_path):
