@@ -279,13 +279,26 @@ def winding_volume(closed, added, removed, samples=WINDING_SAMPLES):
         hi = np.minimum(tri.reshape(-1, 3).max(axis=0) + pad, closed.bounds[1] + pad)
         points.append(lo + (cells + rng.random(cells.shape)) / n * (hi - lo))
         boxes.append(float(np.prod(hi - lo)))
-    inside = closed.contains(np.concatenate(points)).reshape(len(holes), -1).astype(float)
+    winding = closed_winding(closed, np.concatenate(points)).reshape(len(holes), -1)
     change = 0.0
-    for tri, p, box, ins in zip(holes, points, boxes, inside):
+    for tri, p, box, w in zip(holes, points, boxes, winding):
         w_patch = solid_angle_sum(p, tri) / (4.0 * np.pi)
-        before_inside = (ins - w_patch) >= 0.5
-        change += box * float(np.mean(ins - before_inside))
+        change += box * float(np.mean((w >= 0.5).astype(float) - ((w - w_patch) >= 0.5)))
     return float(closed.volume) - change
+
+
+def closed_winding(closed, points):
+    """Winding number of the closed mesh ``closed`` at ``points`` ((n, 3),
+    mm): per shell, +1 inside an outward one, -1 inside a cavity, summed
+    (shells that overlap count twice where they overlap).  Returns (n,)."""
+    bodies = closed.split(only_watertight=False) if closed.body_count > 1 else [closed]
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    w = np.zeros(len(points))
+    for body in bodies:
+        if (body.bounds[0] > hi).any() or (body.bounds[1] < lo).any():
+            continue
+        w += np.sign(body.volume) * body.contains(points)
+    return w
 
 
 def _patches(triangles):

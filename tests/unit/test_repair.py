@@ -160,6 +160,18 @@ def test_a_large_mesh_gives_meshfix_only_the_triangles_near_the_holes(tmp_path, 
         assert mesh.area == pytest.approx(whole.area, rel=1e-9)
 
 
+def test_overlapping_bodies_with_a_hole_are_closed_then_united(tmp_path):
+    # parts exported as one mesh, one of them open: closed by MeshFix, then united by manifold3d
+    a, b = trimesh.creation.box((20.0, 20.0, 20.0)), trimesh.creation.box((20.0, 20.0, 20.0))
+    b.apply_translation((10.0, 0.0, 0.0))                       # overlaps a by half
+    faces = np.concatenate([a.faces, b.faces[b.face_normals[:, 2] > -0.5] + len(a.vertices)])
+    mesh = load_model(save(tmp_path, "parts.stl", np.concatenate([a.vertices, b.vertices]), faces))
+    assert mesh.is_watertight and mesh.body_count == 1
+    assert mesh.volume == pytest.approx(30.0 * 20.0 * 20.0, rel=1e-9)
+    r = report(mesh)
+    assert (r.holes_closed, r.shells_merged) == (1, 2)
+
+
 # ------------------------------------------------------------- refused
 
 def test_a_fill_that_would_bulge_is_refused_with_the_figures(tmp_path):
