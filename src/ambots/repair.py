@@ -153,8 +153,9 @@ def close_holes(mesh, name, report):
         why.append("the fill would be %.1f mm^2, %.1f %% of the surface, more than %g %%" % (
             report.fill_area_mm2, 100 * report.fill_area_share, 100 * MAX_FILL_AREA_SHARE))
     if why:
-        raise MeshError("%s: not a closed volume: %d open edges in %d holes, too large to repair: %s"
-                        % (name, report.open_edges_before, report.holes_closed, "; ".join(why)))
+        raise MeshError("%s: not a closed volume: %d open edges in %d hole%s, too large to repair: %s"
+                        % (name, report.open_edges_before, report.holes_closed,
+                           "" if report.holes_closed == 1 else "s", "; ".join(why)))
     return closed
 
 
