@@ -127,7 +127,7 @@ class Job:
         if report is None:
             return None
         out = report.as_dict()
-        out["notes"] = list(self.mesh.metadata.get("ambots_repairs", []))
+        out["notes"] = list(self.mesh.metadata.get("ambots_repairs", [])) + list(report.notes)
         out["path"] = self.repaired_path
         return out
 

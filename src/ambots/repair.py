@@ -2,8 +2,8 @@
 
 CAD exports and scans often miss a few triangles or leave a face open.  The
 holes are closed by MeshFix (``pymeshfix``, the low-level ``PyTMesh``
-binding: no pyvista), which fills every boundary loop with a patch that
-follows the sampling density around it.  trimesh's own ``fill_holes`` closes
+binding: no pyvista), which fills every boundary loop with a triangulation
+of the loop's own corners (no refinement: no new vertices).  trimesh's own ``fill_holes`` closes
 only holes of 3 or 4 edges; manifold3d needs a closed mesh to start with.
 
 **The rule** ("small against the model"): a repair is kept when both
@@ -15,17 +15,20 @@ only holes of 3 or 4 edges; manifold3d needs a closed mesh to start with.
 "Volume before" of an open mesh is the volume of the points whose
 generalized winding number with respect to it is >= 0.5 (Jacobson et al.
 2013, "Robust inside-outside segmentation using generalized winding
-numbers"): a closed model with a few triangles missing, or a box with its
-bottom left open, keeps its volume (0 % change); a band (a tube open at
-both ends), a bowl-less sheet or a shape whose fill has to bulge does not,
-and is refused with the figures.
+numbers"), judged hole by hole (the other holes taken as closed: the
+deficits of several holes add up, see :func:`winding_volume`).  A closed
+model with a few triangles missing, a box with its bottom left open or a
+cup keep their volume (0 % change); a large hole in a curved surface,
+whose flat fill departs from the surface the winding number implies (a
+bowl, a sphere with an octant cut away: +4 to +6 %), does not, and is refused with the figures; so is a band (a short tube
+open at both ends), whose fill would be two thirds of its surface.
 
 The winding number is linear in the triangles, and the repaired mesh is the
 open mesh plus the patch (minus any triangle MeshFix removed), so
-``w_open(p) = inside_repaired(p) - w_patch(p)``; ``w_patch`` can reach 0.5
+``w_open(p) = w_repaired(p) - w_patch(p)``; ``w_patch`` can reach 0.5
 only near the patch, so only the patch's bounding box is sampled
-(:data:`WINDING_SAMPLES` stratified points), which keeps the measure cheap
-on meshes of millions of triangles.
+(:data:`WINDING_SAMPLES` stratified points shared by the holes), which
+keeps the measure cheap on meshes of millions of triangles.
 
 Units: mm, mm^2, mm^3 (the mesh's frame).
 """
@@ -127,7 +130,12 @@ def close_holes(mesh, name, report):
     report.method = "pymeshfix (MeshFix) fill_small_boundaries"
     report.rule = rule_text()
     report.open_edges_before = open_edges(mesh)
-    closed, added, removed, report.holes_closed = _fill(mesh)
+    try:
+        closed, added, removed, report.holes_closed = _fill(mesh)
+    except Exception as exc:  # noqa: BLE001 -- boundary to a third-party C++ library
+        report.notes.append("MeshFix failed (%s: %s); holes left open" % (type(exc).__name__, exc))
+        report.open_edges_after = report.open_edges_before
+        return mesh.copy()               # validate_mesh refuses it, with the open-edge count
     report.open_edges_after = open_edges(closed)
     with np.errstate(divide="ignore", invalid="ignore"):
         if report.open_edges_after == 0 and closed.volume < 0:
