@@ -88,9 +88,11 @@ def test_a_box_with_three_faces_removed_is_closed_to_its_volume(tmp_path):
     assert r.volume_after_mm3 == pytest.approx(np.prod(BOX), rel=1e-9)
 
 
-def test_a_box_with_an_open_bottom_is_closed_to_its_volume(tmp_path):
+@pytest.mark.parametrize("inside_out", [False, True], ids=["outward", "inside out"])
+def test_a_box_with_an_open_bottom_is_closed_to_its_volume(tmp_path, inside_out):
     b = box()
-    path = save(tmp_path, "open bottom.stl", b.vertices, open_bottom(b))
+    faces = open_bottom(b)[:, ::-1] if inside_out else open_bottom(b)
+    path = save(tmp_path, "open bottom.stl", b.vertices, faces)
     mesh = load_model(path)
     assert mesh.is_watertight and mesh.volume == pytest.approx(np.prod(BOX), rel=1e-9)
     np.testing.assert_allclose(mesh.bounds, b.bounds, atol=1e-6)
