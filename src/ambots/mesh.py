@@ -219,8 +219,9 @@ def repair_mesh(mesh):
         closed.metadata.update(mesh.metadata)
         mesh = closed
         if report.holes_closed:
-            notes.append("closed %d hole%s with %d triangles (%.1f mm^2 of fill); volume %s -> %.1f mm^3"
+            notes.append("closed %d hole%s with %d triangle%s (%.1f mm^2 of fill); volume %s -> %.1f mm^3"
                          % (report.holes_closed, "" if report.holes_closed == 1 else "s", report.faces_added,
+                            "" if report.faces_added == 1 else "s",
                             report.fill_area_mm2, "?" if report.volume_before_mm3 is None
                             else "%.1f" % report.volume_before_mm3,
                             report.volume_after_mm3 if report.volume_after_mm3 is not None else mesh.volume))

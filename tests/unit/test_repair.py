@@ -128,6 +128,25 @@ def test_the_volume_before_agrees_with_a_brute_force_winding_number(tmp_path):
     assert 0 < r.volume_change <= MAX_VOLUME_CHANGE            # the fill is kept
 
 
+def test_a_t_junction_is_closed_with_a_sliver(tmp_path):
+    # a CAD export's defect: the +y face has a vertex in the middle of its top edge, the top
+    # face does not: a slit of 3 open edges and no area
+    b = trimesh.creation.box((20.0, 20.0, 20.0))
+    keep = b.faces[b.face_normals[:, 1] < 0.5]
+    corner = {tuple(np.round(p).astype(int)): k for k, p in enumerate(b.vertices)}
+    a, bb, c, d = (corner[p] for p in ((-10, 10, -10), (10, 10, -10), (10, 10, 10), (-10, 10, 10)))
+    m = len(b.vertices)                                   # (0, 10, 10): on the edge c-d
+    face = np.array([[a, d, m], [a, m, bb], [bb, m, c]])
+    vertices = np.vstack([b.vertices, [0.0, 10.0, 10.0]])
+    normals = np.cross(vertices[face[:, 1]] - vertices[face[:, 0]], vertices[face[:, 2]] - vertices[face[:, 0]])
+    face[normals[:, 1] < 0] = face[normals[:, 1] < 0][:, ::-1]           # outward (+y)
+    mesh = load_model(save(tmp_path, "t-junction.stl", vertices, np.vstack([keep, face])))
+    assert mesh.is_watertight and mesh.volume == pytest.approx(8000.0, rel=1e-9)
+    r = report(mesh)
+    assert (r.holes_closed, r.open_edges_before, r.faces_added) == (1, 3, 1)
+    assert r.fill_area_mm2 == pytest.approx(0.0, abs=1e-9)
+
+
 def test_two_bodies_one_with_a_hole_are_both_kept(tmp_path):
     b = trimesh.creation.box((20.0, 20.0, 20.0))
     s = trimesh.creation.icosphere(subdivisions=2, radius=5.0)
