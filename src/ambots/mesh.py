@@ -213,7 +213,12 @@ def repair_mesh(mesh):
     if len(mesh.faces) < n_face:
         notes.append("removed %d degenerate or duplicate triangles" % (n_face - len(mesh.faces)))
     n_open = report.open_edges_before = open_edge_count(mesh)
-    if n_open and not nonmanifold_edge_count(mesh) and len(mesh.faces):
+    n_nonman = nonmanifold_edge_count(mesh) if n_open else 0
+    if n_open and n_nonman:
+        raise MeshError("%s: not a closed volume: %d open edges and %d non-manifold edges (shared by more "
+                        "than two triangles): holes are closed only in a manifold mesh"
+                        % (source_name(mesh), n_open, n_nonman))
+    if n_open and len(mesh.faces):
         trimesh.repair.fix_winding(mesh)     # the winding number needs one orientation
         closed = close_holes(mesh, source_name(mesh), report)
         closed.metadata.update(mesh.metadata)

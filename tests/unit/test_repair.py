@@ -246,6 +246,19 @@ def test_the_holes_are_judged_one_at_a_time(tmp_path):
     assert mesh.volume == pytest.approx(np.prod(BOX), rel=1e-9)
 
 
+def test_holes_in_a_non_manifold_mesh_are_not_closed(tmp_path):
+    a, b = trimesh.creation.box((20.0, 20.0, 20.0)), trimesh.creation.box((20.0, 20.0, 20.0))
+    b.apply_translation((20.0, 0.0, 0.0))           # the cubes touch along a face: non-manifold edges
+    top = np.flatnonzero(a.face_normals[:, 2] > 0.5)[:1]
+    mesh = trimesh.util.concatenate([trimesh.Trimesh(a.vertices, np.delete(a.faces, top, axis=0)), b])
+    mesh.merge_vertices()
+    n_open = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
+    with pytest.raises(MeshError) as info:
+        load_model(save(tmp_path, "touching.stl", mesh.vertices, mesh.faces))
+    assert str(info.value).startswith("touching.stl: not a closed volume: %d open edges and " % n_open)
+    assert "non-manifold edges" in str(info.value)
+
+
 # ------------------------------------------------------ the must-show
 
 def test_a_holey_model_is_repaired_and_planned_by_both_arms_without_contact(tmp_path):
