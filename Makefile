@@ -53,9 +53,13 @@ $(VENV)/.done: requirements.txt | apt
 	[ -x $(PY) ] || /usr/bin/python3 -m venv --system-site-packages $(VENV)
 	# keep Debian's numpy (PyKDL is built against it; numpy 2 makes it segfault)
 	/usr/bin/python3 -c "import numpy; print('numpy==' + numpy.__version__)" > $(VENV)/constraints.txt
-	$(PY) -m pip install -q --disable-pip-version-check -r requirements.txt -c $(VENV)/constraints.txt
+	# lines marked "# no-deps" are installed without their declared dependencies
+	grep -v -- '# no-deps' requirements.txt > $(VENV)/requirements-deps.txt
+	grep -- '# no-deps' requirements.txt > $(VENV)/requirements-nodeps.txt || true
+	$(PY) -m pip install -q --disable-pip-version-check -r $(VENV)/requirements-deps.txt -c $(VENV)/constraints.txt
+	$(PY) -m pip install -q --disable-pip-version-check --no-deps -r $(VENV)/requirements-nodeps.txt -c $(VENV)/constraints.txt
 	echo "$(ROOT)/src" > $(SITE)/ambots-src.pth
-	$(PY) -c "import numpy, PyKDL, trimesh, manifold3d, yourdfpy, xacro, ompl; \
+	$(PY) -c "import numpy, PyKDL, trimesh, manifold3d, yourdfpy, xacro, ompl, pymeshfix; \
 	  assert numpy.__file__.startswith('/usr/lib/python3/'), numpy.__file__"
 	touch $@
 

@@ -589,6 +589,9 @@ class Menu:
                 name, a["id"], a["part_volume_mm3"], a["layers"], len(p.lines), a["extruded_filament_mm"],
                 a["print_time_s"], "by A1" if p.start_first else "after another arm"))
         from ambots.job import overhang_lines, plan_lines, unsupported_line
+        from ambots.repair import repair_lines
+        for line in repair_lines(summary.get("repair")):
+            self.say("  " + line)
         for line in plan_lines(summary.get("plan")):
             self.say("  " + line)
         if summary.get("overhang"):

@@ -22,7 +22,7 @@ from ambots.units import m_to_mm
 DEMO_MODEL = "config/models/demo_block.stl"
 
 __all__ = ["DEMO_MODEL", "Job", "Candidate", "prepare_model", "split", "slice_parts", "coordinate", "run_job",
-           "write_job", "plan_lines", "overhang_lines", "unsupported_line", "TIE_SHARE"]
+           "write_job", "plan_lines", "REPAIRED_MESH", "overhang_lines", "unsupported_line", "TIE_SHARE"]
 
 
 @dataclass
@@ -66,6 +66,8 @@ class Job:
     forced: bool = False
     #: the slicer.SliceSettings the parts were sliced with (None: the defaults)
     settings: object = None
+    #: the repaired model's file name in the job folder, once :func:`write_job` wrote it
+    repaired_path: str = None
 
     @property
     def chosen(self):
@@ -102,6 +104,7 @@ class Job:
                "one_arm_estimate_s": self.one_arm_estimate_s, "plan": self.plan_summary(), "arms": {}}
         events = self.events()
         out["overhang"] = self.overhang()
+        out["repair"] = self.repair()
         for part in self.parts:
             name = part.arm.name
             if name not in self.programs:
@@ -115,6 +118,18 @@ class Job:
                 "stripped_lines": [{"line": l, "text": t} for l, t in self.programs[name].removed]}
         return out
 
+
+    def repair(self):
+        """The model's repair report (:meth:`ambots.repair.RepairReport.as_dict`;
+        ``path``: the repaired mesh in the job folder once :func:`write_job`
+        wrote it), or None when the model was not loaded with repair."""
+        report = (self.mesh.metadata or {}).get("ambots_repair") if self.mesh is not None else None
+        if report is None:
+            return None
+        out = report.as_dict()
+        out["notes"] = list(self.mesh.metadata.get("ambots_repairs", [])) + list(report.notes)
+        out["path"] = self.repaired_path
+        return out
 
     def events(self):
         """{arm name: G-code events of its program}: the parse that timed the
@@ -391,10 +406,24 @@ def _best(candidates):
     return min(close)[2]
 
 
+#: file name of the repaired model in the job folder (bed frame, mm)
+REPAIRED_MESH = "model_repaired.stl"
+
+
 def write_job(job, out_dir):
-    """Write ``<arm>.gcode`` (program), ``<arm>.stl`` (part) per arm and
-    ``job.json`` (summary) into ``out_dir``; returns the summary."""
+    """Write ``<arm>.gcode`` (program), ``<arm>.stl`` (part) per arm,
+    :data:`REPAIRED_MESH` when the model was repaired (holes closed or
+    shells merged; the mesh as placed on the bed, mm) and ``job.json``
+    (summary, its ``"repair"`` the repair report) into ``out_dir``;
+    returns the summary."""
     os.makedirs(out_dir, exist_ok=True)
+    repaired = os.path.join(out_dir, REPAIRED_MESH)
+    report = (job.mesh.metadata or {}).get("ambots_repair") if job.mesh is not None else None
+    if report is not None and report.changed:
+        job.mesh.export(repaired)
+        job.repaired_path = REPAIRED_MESH
+    elif os.path.exists(repaired):       # an earlier job's repair: not this model's
+        os.remove(repaired)
     for arm in job.cell.arms:            # an earlier job's program of an arm without work now: gone
         if arm.name not in job.programs:
             for ext in (".gcode", ".stl"):

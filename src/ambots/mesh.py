@@ -38,6 +38,8 @@ DEFAULT_MAX_TRIANGLES = 5_000_000
 SOURCE_KEY = "ambots_source"
 #: key of ``Trimesh.metadata`` holding the list of repairs made on load
 REPAIRS_KEY = "ambots_repairs"
+#: key of ``Trimesh.metadata`` holding the :class:`ambots.repair.RepairReport`
+REPORT_KEY = "ambots_repair"
 
 
 # ---------------------------------------------------------------- loading
@@ -54,7 +56,8 @@ def load_model(path, scale=1.0, max_triangles=DEFAULT_MAX_TRIANGLES, repair=True
     max_triangles : int
       Files with more triangles are refused (the message gives the count).
     repair : bool
-      Drop degenerate and duplicate triangles, fill small holes, fix
+      Drop degenerate and duplicate triangles, close holes that are
+      small against the model (:mod:`ambots.repair`), fix
       winding and normals, and merge overlapping shells.  With ``False``
       the mesh is only welded (shared vertices merged) and validated.
 
@@ -63,7 +66,9 @@ def load_model(path, scale=1.0, max_triangles=DEFAULT_MAX_TRIANGLES, repair=True
     mesh : trimesh.Trimesh
       Watertight, outward-oriented, positive volume, in mm.
       ``mesh.metadata['ambots_source']`` is the file name and
-      ``mesh.metadata['ambots_repairs']`` lists the repairs made (strings).
+      ``mesh.metadata['ambots_repairs']`` lists the repairs made (strings),
+      ``mesh.metadata['ambots_repair']`` is the
+      :class:`ambots.repair.RepairReport` (with ``repair``).
 
     Raises
     ------
@@ -184,32 +189,54 @@ def check_numbers(mesh, name, max_triangles=DEFAULT_MAX_TRIANGLES, scale=1.0):
 # ----------------------------------------------------------------- repair
 
 def repair_mesh(mesh):
-    """Repair what can be repaired, in place, and return the mesh.
+    """Repair what can be repaired and return the mesh (``mesh`` itself or
+    a new one).
 
-    Steps: merge coincident vertices (no note: routine); drop degenerate and duplicate
-    triangles; fill holes of 3 or 4 edges; make the winding consistent and
-    the normals point outward; merge shells that overlap each other (a
-    self-intersection left by exporting several parts as one mesh).  Each
-    change is appended to ``mesh.metadata['ambots_repairs']``.
+    Steps: merge coincident vertices (no note: routine); drop degenerate and
+    duplicate triangles; close the holes with MeshFix when the defect is
+    small against the model (:func:`ambots.repair.close_holes`: the rule,
+    and the refusal with the figures when it is broken); make the winding
+    consistent and the normals point outward; merge shells that overlap
+    each other (a self-intersection left by exporting several parts as one
+    mesh).  Each change is appended to ``mesh.metadata['ambots_repairs']``;
+    ``mesh.metadata['ambots_repair']`` is the
+    :class:`ambots.repair.RepairReport`.
     """
+    from ambots.repair import RepairReport, close_holes
     notes = mesh.metadata.setdefault(REPAIRS_KEY, [])
-    n_face = len(mesh.faces)
+    report = mesh.metadata[REPORT_KEY] = RepairReport()
+    n_face = report.faces_before = len(mesh.faces)
     mesh.merge_vertices(merge_tex=True, merge_norm=True)  # done by load_model too
     mesh.update_faces(mesh.nondegenerate_faces())
     mesh.update_faces(mesh.unique_faces())
     mesh.remove_unreferenced_vertices()
     if len(mesh.faces) < n_face:
         notes.append("removed %d degenerate or duplicate triangles" % (n_face - len(mesh.faces)))
-    n_open = open_edge_count(mesh)
-    if n_open:
-        n_before = len(mesh.faces)
-        trimesh.repair.fill_holes(mesh)
-        if open_edge_count(mesh) < n_open:
-            notes.append("filled holes with %d triangles" % (len(mesh.faces) - n_before))
+    n_open = report.open_edges_before = open_edge_count(mesh)
+    n_nonman = nonmanifold_edge_count(mesh) if n_open else 0
+    if n_open and n_nonman:
+        raise MeshError("%s: not a closed volume: %d open edges and %d non-manifold edges (shared by more "
+                        "than two triangles): holes are closed only in a manifold mesh"
+                        % (source_name(mesh), n_open, n_nonman))
+    if n_open and len(mesh.faces):
+        trimesh.repair.fix_winding(mesh)     # the winding number needs one orientation
+        closed = close_holes(mesh, source_name(mesh), report)
+        closed.metadata.update(mesh.metadata)
+        mesh = closed
+        if report.holes_closed:
+            notes.append("closed %d hole%s with %d triangle%s (%.1f mm^2 of fill); volume %s -> %.1f mm^3"
+                         % (report.holes_closed, "" if report.holes_closed == 1 else "s", report.faces_added,
+                            "" if report.faces_added == 1 else "s",
+                            report.fill_area_mm2, "?" if report.volume_before_mm3 is None
+                            else "%.1f" % report.volume_before_mm3,
+                            report.volume_after_mm3 if report.volume_after_mm3 is not None else mesh.volume))
     n_flip = _fix_orientation(mesh)
     if n_flip:
         notes.append("flipped %d triangles to make the normals point outward" % n_flip)
-    return _merge_overlapping_shells(mesh)
+    mesh = _merge_overlapping_shells(mesh)
+    report.faces_after = len(mesh.faces)
+    report.open_edges_after = open_edge_count(mesh)
+    return mesh
 
 
 def _fix_orientation(mesh):
@@ -244,6 +271,9 @@ def _merge_overlapping_shells(mesh):
         return mesh
     merged = from_manifold(union)
     merged.metadata.update(mesh.metadata)
+    report = merged.metadata.get(REPORT_KEY)
+    if report is not None:
+        report.shells_merged = len(shells)
     merged.metadata[REPAIRS_KEY].append(
         "self-intersection: %d shells overlap by %.3f mm^3; merged into one volume"
         % (len(shells), overlap))

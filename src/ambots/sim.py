@@ -253,6 +253,8 @@ def report(result, motion, job=None, model=None, cell=None, mode=None, slicer=No
     extra = {"plan": job.plan_summary()} if job is not None and getattr(job, "candidates", None) else {}
     if job is not None and getattr(job, "programs", None):
         extra["overhang"] = job.overhang()
+    if job is not None and getattr(job, "mesh", None) is not None and hasattr(job, "repair"):
+        extra["repair"] = job.repair()
     return build(meta, result.finished, arms, round(result.makespan_s, 3), motion, deposit_mm3, model_mm3,
                  result.wall_time_s if wall_time_s is None else wall_time_s, reason=result.reason,
                  errors=[{"arm": e.robot, "line": e.line, "message": e.message} for e in result.errors],

@@ -520,7 +520,8 @@ def test_upper_case_extension_is_fine_and_a_face_hole_is_filled(tmp_path):
     path.write_bytes(_stl(_without([2])))
     mesh = load_model(str(path))                 # a 4-edge hole is filled (documented repair)
     assert mesh.volume == pytest.approx(8000.0)
-    assert mesh.metadata["ambots_repairs"] == ["filled holes with 2 triangles"]
+    (note,) = mesh.metadata["ambots_repairs"]
+    assert note.startswith("closed 1 hole with 2 triangles (400.0 mm^2 of fill)")
 
 
 @pytest.mark.parametrize("offset, volume", [((10.0, 0.0, 0.0), 12000.0), ((5.0, 5.0, 5.0), 16000.0 - 15.0 ** 3)],

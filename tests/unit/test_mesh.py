@@ -87,13 +87,18 @@ def test_missing_face_is_filled(tmp_path):
     assert "not a closed volume: 3 open edges" in refusal(path, repair=False)
 
 
-def test_large_hole_is_refused_with_the_open_edge_count(tmp_path):
+def test_an_open_top_is_closed_and_a_band_is_refused(tmp_path):
     tube = cylinder()          # 48 sections: the top cap is bounded by 48 edges
     top = tube.face_normals[:, 2] > 0.99
     path = write(tmp_path / "open top.stl",
                  trimesh.Trimesh(tube.vertices, tube.faces[~top], process=False))
-    message = refusal(path)
-    assert "not a closed volume: 48 open edges" in message
+    mesh = load_model(path)    # a flat 48-edge hole: closed, the volume of the intact cylinder
+    assert mesh.is_watertight and mesh.volume == pytest.approx(tube.volume, rel=1e-6)
+    assert "not a closed volume: 48 open edges" in refusal(path, repair=False)
+    ring = trimesh.creation.cylinder(radius=8.0, height=4.0, sections=48)
+    side = np.abs(ring.face_normals[:, 2]) < 0.5     # no top, no bottom: a band, 2/3 of it missing
+    path = write(tmp_path / "band.stl", trimesh.Trimesh(ring.vertices, ring.faces[side], process=False))
+    assert "not a closed volume: 96 open edges in 2 holes, too large to repair" in refusal(path)
 
 
 def test_overlapping_shells_are_merged(tmp_path):

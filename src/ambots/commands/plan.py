@@ -42,6 +42,7 @@ def plan_job(model, cell, arms=None, slicer="builtin", mode="concurrent", seam="
     rep["seam_bonded_share"], rep["seam_lap_order"] = seam_report(job, deposit, result)
     if out:
         write_job(job, out)
+        rep["repair"] = job.repair()          # with the repaired mesh's file, now written
         if len(deposit):
             deposit.export(os.path.join(out, "deposit.ply"),
                            colours={n: r.arm.profile.colour for n, r in result.runners.items()}, scale=1000.0)
@@ -126,6 +127,9 @@ def run(args):
         args.model, args.out, rep["cell"], rep["mode"], rep["makespan_s"],
         "finished" if rep["finished"] else "NOT finished: " + rep["reason"], rep["wall_time_s"]))
     from ambots.job import overhang_lines, plan_lines, unsupported_line
+    from ambots.repair import repair_lines
+    for line in repair_lines(rep.get("repair")):
+        print("  " + line)
     for line in plan_lines(rep.get("plan")):
         print("  " + line)
     if rep.get("overhang"):

@@ -5,7 +5,7 @@ def register(sub):
     p = sub.add_parser("slice", help="split a model among the arms, slice it, write per-arm programs",
                        description="Read a model (STL, OBJ, PLY, 3MF; mm), centre it on the bed, split it "
                                    "among the cell's arms, slice every part and coordinate the per-arm "
-                                   "programs. Writes DIR/<arm>.gcode, DIR/<arm>.stl and DIR/job.json.")
+                                   "programs. Writes DIR/<arm>.gcode, DIR/<arm>.stl, DIR/job.json and, when the model was repaired, DIR/model_repaired.stl.")
     add_job_arguments(p, "out/slice")
     p.set_defaults(func=run)
 
@@ -36,6 +36,9 @@ def run(args):
     print("%s -> %s: %s, %s slicer, %s mode, model %.0f mm3" % (
         args.model, args.out, cell.name, args.slicer, args.mode, summary["model_volume_mm3"]))
     from ambots.job import overhang_lines, plan_lines, unsupported_line
+    from ambots.repair import repair_lines
+    for line in repair_lines(summary.get("repair")):
+        print("  " + line)
     for line in plan_lines(summary["plan"]):
         print("  " + line)
     print("  " + unsupported_line(summary["overhang"]))

@@ -1,0 +1,292 @@
+"""Mesh repair (ambots.repair through ambots.mesh.load_model): holes closed
+when small against the model, refused with the figures otherwise.
+
+The models are made here, with holes of our own making; every figure is
+checked against something the repair code does not compute: the intact
+model's volume (a formula, or the divergence theorem written out below),
+and for "volume before" of an open mesh a brute-force generalized winding
+number over the whole bounding box (written out below, not the module's
+patch-only estimate)."""
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+from ambots.errors import MeshError
+from ambots.mesh import load_model
+from ambots.repair import MAX_FILL_AREA_SHARE, MAX_VOLUME_CHANGE
+
+BOX = (60.0, 30.0, 8.0)                 # mm: the must-show size, across the seam
+
+
+# ---------------------------------------------------------------- helpers
+
+def save(tmp_path, name, vertices, faces):
+    path = str(tmp_path / name)
+    trimesh.Trimesh(vertices, faces, process=False).export(path)
+    return path
+
+
+def signed_volume(vertices, faces):
+    """Divergence theorem: sum of the tetrahedra (origin, triangle), mm^3."""
+    a, b, c = (np.asarray(vertices, float)[np.asarray(faces)[:, i]] for i in range(3))
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def brute_winding_volume(vertices, faces, n=36):
+    """Volume (mm^3) of the points of a regular n^3 grid over the bounding
+    box whose generalized winding number w.r.t. the triangles is >= 0.5;
+    the solid angle of a triangle from its corners' unit vectors
+    (tan(O/2) = a.(b x c) / (1 + a.b + b.c + c.a))."""
+    tri = np.asarray(vertices, float)[np.asarray(faces)]
+    lo, hi = tri.reshape(-1, 3).min(0) - 0.5, tri.reshape(-1, 3).max(0) + 0.5
+    g = (np.stack(np.meshgrid(*[np.arange(n) + 0.5] * 3, indexing="ij"), -1).reshape(-1, 3)) / n
+    points = lo + g * (hi - lo)
+    w = np.zeros(len(points))
+    for s in range(0, len(points), 500):
+        d = tri[None] - points[s:s + 500, None, None]
+        u = d / np.linalg.norm(d, axis=-1, keepdims=True)
+        a, b, c = u[..., 0, :], u[..., 1, :], u[..., 2, :]
+        num = np.einsum("...i,...i", a, np.cross(b, c))
+        den = 1 + np.einsum("...i,...i", a, b) + np.einsum("...i,...i", b, c) + np.einsum("...i,...i", c, a)
+        w[s:s + 500] = 2 * np.arctan2(num, den).sum(-1) / (4 * np.pi)
+    return float(np.prod(hi - lo) * np.mean(w >= 0.5))
+
+
+def box():
+    return trimesh.creation.box(BOX)
+
+
+def open_bottom(mesh):
+    return mesh.faces[mesh.face_normals[:, 2] > -0.5]
+
+
+def report(mesh):
+    return mesh.metadata["ambots_repair"]
+
+
+# ------------------------------------------------------------- repaired
+
+def test_a_box_with_three_faces_removed_is_closed_to_its_volume(tmp_path):
+    b = box().subdivide().subdivide()   # 192 triangles: room for three holes that share no corner
+    # a triangle in the middle of the top, of a long side and of a short side: three holes of 3 edges
+    gone = [int(np.argmin(np.linalg.norm(b.triangles_center - 0.5 * np.multiply(BOX, axis), axis=1)))
+            for axis in ((0, 0, 1), (0, 1, 0), (-1, 0, 0))]
+    assert len(np.unique(b.faces[gone])) == 9
+    path = save(tmp_path, "three holes.stl", b.vertices, np.delete(b.faces, gone, axis=0))
+    mesh = load_model(path)
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    assert mesh.volume == pytest.approx(np.prod(BOX), rel=1e-9)
+    r = report(mesh)
+    assert (r.holes_closed, r.faces_added, r.faces_removed) == (3, 3, 0)
+    assert (r.open_edges_before, r.open_edges_after) == (9, 0)
+    assert r.volume_before_mm3 == pytest.approx(np.prod(BOX), rel=1e-3)
+    assert r.volume_after_mm3 == pytest.approx(np.prod(BOX), rel=1e-9)
+
+
+@pytest.mark.parametrize("inside_out", [False, True], ids=["outward", "inside out"])
+def test_a_box_with_an_open_bottom_is_closed_to_its_volume(tmp_path, inside_out):
+    b = box()
+    faces = open_bottom(b)[:, ::-1] if inside_out else open_bottom(b)
+    path = save(tmp_path, "open bottom.stl", b.vertices, faces)
+    mesh = load_model(path)
+    assert mesh.is_watertight and mesh.volume == pytest.approx(np.prod(BOX), rel=1e-9)
+    np.testing.assert_allclose(mesh.bounds, b.bounds, atol=1e-6)
+    r = report(mesh)
+    assert (r.holes_closed, r.open_edges_before, r.faces_added) == (1, 4, 2)
+    assert r.fill_area_mm2 == pytest.approx(BOX[0] * BOX[1])
+    # the whole bottom is 36 % of the surface: under the area limit
+    area = 2 * (BOX[0] * BOX[1] + BOX[0] * BOX[2] + BOX[1] * BOX[2])
+    assert r.fill_area_share == pytest.approx(BOX[0] * BOX[1] / area) and r.fill_area_share < MAX_FILL_AREA_SHARE
+    assert abs(r.volume_change) < 1e-3
+
+
+def test_a_sphere_with_five_faces_removed_keeps_its_volume(tmp_path):
+    s = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    gone = [0, 77, 200, 513, 1001]                 # far apart: five holes of 3 edges
+    path = save(tmp_path, "sphere.obj", s.vertices, np.delete(s.faces, gone, axis=0))
+    mesh = load_model(path)
+    intact = signed_volume(s.vertices, s.faces)
+    assert mesh.is_watertight and mesh.volume == pytest.approx(intact, rel=1e-6)
+    assert intact == pytest.approx(4.0 / 3.0 * np.pi * 10.0 ** 3, rel=0.01)   # the polyhedron is a sphere
+    r = report(mesh)
+    assert (r.holes_closed, r.faces_added, r.open_edges_before) == (5, 5, 15)
+
+
+def test_the_volume_before_agrees_with_a_brute_force_winding_number(tmp_path):
+    s = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    faces = s.faces[s.triangles_center[:, 2] < 7.0]      # a cap cut off: one 48-edge hole, not flat
+    mesh = load_model(save(tmp_path, "capless.stl", s.vertices, faces))
+    r = report(mesh)
+    expected = brute_winding_volume(s.vertices, faces)
+    assert r.volume_before_mm3 == pytest.approx(expected, rel=0.01)
+    assert r.volume_after_mm3 == pytest.approx(mesh.volume)
+    assert 0 < r.volume_change <= MAX_VOLUME_CHANGE            # the fill is kept
+
+
+def test_a_t_junction_is_closed_with_a_sliver(tmp_path):
+    # a CAD export's defect: the +y face has a vertex in the middle of its top edge, the top
+    # face does not: a slit of 3 open edges and no area
+    b = trimesh.creation.box((20.0, 20.0, 20.0))
+    keep = b.faces[b.face_normals[:, 1] < 0.5]
+    corner = {tuple(np.round(p).astype(int)): k for k, p in enumerate(b.vertices)}
+    a, bb, c, d = (corner[p] for p in ((-10, 10, -10), (10, 10, -10), (10, 10, 10), (-10, 10, 10)))
+    m = len(b.vertices)                                   # (0, 10, 10): on the edge c-d
+    face = np.array([[a, d, m], [a, m, bb], [bb, m, c]])
+    vertices = np.vstack([b.vertices, [0.0, 10.0, 10.0]])
+    normals = np.cross(vertices[face[:, 1]] - vertices[face[:, 0]], vertices[face[:, 2]] - vertices[face[:, 0]])
+    face[normals[:, 1] < 0] = face[normals[:, 1] < 0][:, ::-1]           # outward (+y)
+    mesh = load_model(save(tmp_path, "t-junction.stl", vertices, np.vstack([keep, face])))
+    assert mesh.is_watertight and mesh.volume == pytest.approx(8000.0, rel=1e-9)
+    r = report(mesh)
+    assert (r.holes_closed, r.open_edges_before, r.faces_added) == (1, 3, 1)
+    assert r.fill_area_mm2 == pytest.approx(0.0, abs=1e-9)
+
+
+def test_two_bodies_one_with_a_hole_are_both_kept(tmp_path):
+    b = trimesh.creation.box((20.0, 20.0, 20.0))
+    s = trimesh.creation.icosphere(subdivisions=2, radius=5.0)
+    s.apply_translation((30.0, 0.0, 0.0))
+    faces = np.concatenate([b.faces, np.delete(s.faces, [4, 100], axis=0) + len(b.vertices)])
+    path = save(tmp_path, "two bodies.stl", np.concatenate([b.vertices, s.vertices]), faces)
+    mesh = load_model(path)
+    assert mesh.body_count == 2 and mesh.is_watertight
+    volumes = sorted(body.volume for body in mesh.split(only_watertight=False))
+    assert volumes == pytest.approx(sorted([8000.0, signed_volume(s.vertices, s.faces)]), rel=1e-6)
+    assert report(mesh).holes_closed == 2
+
+
+@pytest.mark.parametrize("cut", ["five triangles", "a cap"])
+def test_a_large_mesh_gives_meshfix_only_the_triangles_near_the_holes(tmp_path, monkeypatch, cut):
+    import ambots.repair
+    monkeypatch.setattr(ambots.repair, "LOCAL_FILL_TRIANGLES", 100)     # 1280 triangles: the local way
+    s = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    faces = (np.delete(s.faces, [0, 77, 200, 513, 1001], axis=0) if cut == "five triangles"
+             else s.faces[s.triangles_center[:, 2] < 7.0])
+    mesh = load_model(save(tmp_path, "local.stl", s.vertices, faces))
+    assert mesh.is_watertight and mesh.body_count == 1
+    r = report(mesh)
+    if cut == "five triangles":
+        assert (r.holes_closed, r.faces_added) == (5, 5)
+        assert mesh.volume == pytest.approx(signed_volume(s.vertices, s.faces), rel=1e-6)
+    else:                          # the same as MeshFix on the whole mesh
+        monkeypatch.setattr(ambots.repair, "LOCAL_FILL_TRIANGLES", 10 ** 6)
+        whole = load_model(save(tmp_path, "whole.stl", s.vertices, faces))
+        assert r.holes_closed == 1 and r.faces_added == report(whole).faces_added
+        assert mesh.volume == pytest.approx(whole.volume, rel=1e-9)
+        assert mesh.area == pytest.approx(whole.area, rel=1e-9)
+
+
+def test_overlapping_bodies_with_a_hole_are_closed_then_united(tmp_path):
+    # parts exported as one mesh, one of them open: closed by MeshFix, then united by manifold3d
+    a, b = trimesh.creation.box((20.0, 20.0, 20.0)), trimesh.creation.box((20.0, 20.0, 20.0))
+    b.apply_translation((10.0, 0.0, 0.0))                       # overlaps a by half
+    faces = np.concatenate([a.faces, b.faces[b.face_normals[:, 2] > -0.5] + len(a.vertices)])
+    mesh = load_model(save(tmp_path, "parts.stl", np.concatenate([a.vertices, b.vertices]), faces))
+    assert mesh.is_watertight and mesh.body_count == 1
+    assert mesh.volume == pytest.approx(30.0 * 20.0 * 20.0, rel=1e-9)
+    r = report(mesh)
+    assert (r.holes_closed, r.shells_merged) == (1, 2)
+
+
+# ------------------------------------------------------------- refused
+
+def test_a_fill_that_would_bulge_is_refused_with_the_figures(tmp_path):
+    s = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    c = s.triangles_center
+    faces = s.faces[~((c[:, 0] > 0) & (c[:, 2] > 0))]   # an octant's quarter of the surface gone
+    path = save(tmp_path, "octant.stl", s.vertices, faces)
+    with pytest.raises(MeshError) as info:
+        load_model(path)
+    msg = str(info.value)
+    assert msg.startswith("octant.stl: not a closed volume: 48 open edges in 1 hole, too large to repair: ")
+    assert "too large to repair: repair would change the volume from " in msg
+    before, after = (float(x) for x in msg.split("volume from ")[1].split(" mm^3")[0].split(" to "))
+    change = float(msg.split("mm^3 (")[1].split(" %")[0])
+    assert before == pytest.approx(brute_winding_volume(s.vertices, faces), rel=0.01)
+    assert change == pytest.approx(100 * (after - before) / before, abs=0.06)
+    assert change > 100 * MAX_VOLUME_CHANGE and "more than 3 %" in msg
+    assert "of the surface" not in msg                # a quarter of the surface: the area is not the reason
+
+
+def test_a_band_is_refused_for_its_fill_area(tmp_path):
+    n, r, h = 64, 20.0, 10.0
+    c = trimesh.creation.cylinder(radius=r, height=h, sections=n)
+    faces = c.faces[np.abs(c.face_normals[:, 2]) < 0.5]          # no top, no bottom
+    path = save(tmp_path, "band.stl", c.vertices, faces)
+    with pytest.raises(MeshError) as info:
+        load_model(path)
+    msg = str(info.value)
+    assert msg.startswith("band.stl: not a closed volume: 128 open edges in 2 holes, too large to repair")
+    cap = 0.5 * n * r ** 2 * np.sin(2 * np.pi / n)               # an n-gon
+    share = 2 * cap / (2 * cap + n * 2 * r * np.sin(np.pi / n) * h)
+    assert share > MAX_FILL_AREA_SHARE
+    assert "the fill would be %.1f mm^2, %.1f %% of the surface, more than 50 %%" % (2 * cap, 100 * share) in msg
+
+
+def test_the_holes_are_judged_one_at_a_time(tmp_path):
+    # a flat box with an open bottom and a small hole in the top: with both open, the
+    # winding number of a thin slab above the bottom is under 0.5 (the deficits add up:
+    # the brute force finds less than the box); each hole alone leaves the box whole
+    b = box().subdivide().subdivide()
+    faces = b.faces[b.face_normals[:, 2] > -0.5]
+    top = trimesh.Trimesh(b.vertices, faces, process=False)
+    gone = int(np.argmin(np.linalg.norm(top.triangles_center - (0.0, 0.0, BOX[2] / 2), axis=1)))
+    faces = np.delete(faces, gone, axis=0)
+    assert brute_winding_volume(b.vertices, faces) < 0.95 * np.prod(BOX)
+    for one_hole in (b.faces[b.face_normals[:, 2] > -0.5], np.delete(b.faces, gone, axis=0)):
+        assert brute_winding_volume(b.vertices, one_hole) == pytest.approx(np.prod(BOX), rel=0.01)
+    mesh = load_model(save(tmp_path, "two holes.stl", b.vertices, faces))
+    r = report(mesh)
+    assert r.holes_closed == 2 and r.volume_before_mm3 == pytest.approx(np.prod(BOX), rel=1e-3)
+    assert mesh.volume == pytest.approx(np.prod(BOX), rel=1e-9)
+
+
+def test_holes_in_a_non_manifold_mesh_are_not_closed(tmp_path):
+    a, b = trimesh.creation.box((20.0, 20.0, 20.0)), trimesh.creation.box((20.0, 20.0, 20.0))
+    b.apply_translation((20.0, 0.0, 0.0))           # the cubes touch along a face: non-manifold edges
+    top = np.flatnonzero(a.face_normals[:, 2] > 0.5)[:1]
+    mesh = trimesh.util.concatenate([trimesh.Trimesh(a.vertices, np.delete(a.faces, top, axis=0)), b])
+    mesh.merge_vertices()
+    n_open = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
+    with pytest.raises(MeshError) as info:
+        load_model(save(tmp_path, "touching.stl", mesh.vertices, mesh.faces))
+    assert str(info.value).startswith("touching.stl: not a closed volume: %d open edges and " % n_open)
+    assert "non-manifold edges" in str(info.value)
+
+
+# ------------------------------------------------------ the must-show
+
+def test_a_holey_model_is_repaired_and_planned_by_both_arms_without_contact(tmp_path):
+    # an open bottom and a triangle missing in the middle of the top and of a long side:
+    # three holes, 16 + 3 + 3 open edges (the bottom is cut into 4 x 4 edges by the subdivisions)
+    b = box().subdivide().subdivide()
+    faces = trimesh.Trimesh(b.vertices, open_bottom(b), process=False)
+    gone = [int(np.argmin(np.linalg.norm(faces.triangles_center - 0.5 * np.multiply(BOX, axis), axis=1)))
+            for axis in ((0, 0, 1), (0, 1, 0))]
+    model = save(tmp_path, "holey.stl", b.vertices, np.delete(faces.faces, gone, axis=0))
+    out = tmp_path / "plan"
+    run = subprocess.run([sys.executable, "-m", "ambots", "plan", model, "--arms", "kinova,ur10",
+                          "--out", str(out)], capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "repaired: 3 holes closed" in run.stdout and "repaired mesh: model_repaired.stl" in run.stdout
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["finished"] and rep["collisions"] == {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}
+    assert set(rep["arms"]) == {"kinova", "ur10"}
+    for arm in ("kinova", "ur10"):
+        assert os.path.getsize(out / (arm + ".gcode")) > 0 and rep["arms"][arm]["extrude_mm"] > 0
+    job = json.loads((out / "job.json").read_text())
+    r = job["repair"]
+    assert (r["holes_closed"], r["open_edges_before"], r["open_edges_after"]) == (3, 22, 0)
+    assert r["volume_after_mm3"] == pytest.approx(np.prod(BOX)) and r["path"] == "model_repaired.stl"
+    assert rep["repair"] == r
+    repaired = trimesh.load(str(out / "model_repaired.stl"))
+    assert repaired.is_watertight and repaired.volume == pytest.approx(np.prod(BOX), rel=1e-6)
+    np.testing.assert_allclose(repaired.extents, BOX, atol=1e-4)
+    # the parts the arms printed add up to the closed model
+    assert sum(trimesh.load(str(out / (a + ".stl"))).volume for a in ("kinova", "ur10")) == \
+        pytest.approx(np.prod(BOX), rel=1e-3)
