@@ -39,7 +39,7 @@ import numpy as np
 import ambots
 from ambots.errors import AmbotsError, ConfigError
 from ambots.mesh import to_manifold, source_name
-from ambots.support import SUPPORT, SUPPORT_INTERFACE, support_layers
+from ambots.support import SUPPORT, SUPPORT_INTERFACE, overhangs, support_layers
 
 #: G-code feature names, as PrusaSlicer writes them after ``;TYPE:``
 EXTERNAL_PERIMETER = "External perimeter"
@@ -255,21 +255,24 @@ class BuiltinSlicer:
         interiors = interior_regions(outlines, s.bottom_solid_layers, s.top_solid_layers)
         # 2b. support, from the whole model (on its layer grid: the same
         # grid from the bed up), printed in the part's prism only
-        supports = [None] * len(outlines)
+        # and bridges, whose solid infill is laid across the gap
+        supports, bridges = [None] * len(outlines), [[]] * len(outlines)
         if s.support:
             whole_outlines, whole_heights = outlines, heights
             if whole is not None:
                 _check_above_bed(whole)
                 wz, whole_heights = layer_heights(float(whole.bounds[1][2]), s)
                 whole_outlines = slice_layers(to_manifold(whole), wz - whole_heights / 2.0, s.resolution_mm)
-            supports = (support_layers(whole_outlines, whole_heights, s, keep) + supports)[:len(outlines)]
+            over, spans = overhangs(whole_outlines, s)
+            supports = (support_layers(whole_outlines, whole_heights, s, keep, over) + supports)[:len(outlines)]
+            bridges = (spans + bridges)[:len(outlines)]
         writer = GcodeWriter(s, source_name(mesh))
         for i, (z, h, outline, interior) in enumerate(zip(z_tops, heights, outlines, interiors)):
             sup = supports[i]
             if outline.is_empty() and sup is None:
                 continue
             angle = math.radians(s.infill_angle_deg + 90.0 * (i % 2))
-            islands = [plan_island(island, interior, h, angle, s)  # 3.-4. perimeters, infill
+            islands = [plan_island(island, interior, h, angle, s, bridges[i])  # 3.-4. perimeters, infill
                        for island in outline.decompose()]
             writer.layer_change(z, h, first=(i == 0))
             if sup is not None:          # support first: the contact layer z_gap lower, then the rest
@@ -332,7 +335,7 @@ def interior_regions(outlines, bottom_layers, top_layers):
     return out
 
 
-def plan_island(island, interior, height, angle_rad, settings):
+def plan_island(island, interior, height, angle_rad, settings, bridges=()):
     """Paths of one island (one outline with its holes) of a layer, in the
     order of printing: perimeters from the innermost loop out to the
     external one, then solid infill, then sparse infill.
@@ -346,6 +349,10 @@ def plan_island(island, interior, height, angle_rad, settings):
     height : float, mm
     angle_rad : float
       Infill direction.
+    bridges : list of (CrossSection, float)
+      Bridges of this layer and their directions (rad,
+      :func:`ambots.support.overhangs`): the solid infill over them (and a
+      bead width into their anchors) runs that way, across the gap.
 
     Returns
     -------
@@ -364,11 +371,20 @@ def plan_island(island, interior, height, angle_rad, settings):
     solid = clip - interior
     sparse = clip ^ interior
     link_max = 2.0 * w  # shorter jumps between lines are extruded
-    for region, spacing, feature in ((solid, sp, SOLID_INFILL),
-                                     (sparse, sp / max(s.infill_density, 1e-9), SPARSE_INFILL)):
+    regions = []
+    for span, span_angle in bridges:
+        if solid.is_empty():
+            break
+        part = solid ^ span.offset(2.0 * w, manifold3d.JoinType.Round)
+        if not part.is_empty():
+            regions.append((part, sp, SOLID_INFILL, span_angle))
+            solid = solid - part
+    regions += [(solid, sp, SOLID_INFILL, angle_rad),
+                (sparse, sp / max(s.infill_density, 1e-9), SPARSE_INFILL, angle_rad)]
+    for region, spacing, feature, direction in regions:
         if region.is_empty() or (feature == SPARSE_INFILL and s.infill_density <= 0):
             continue
-        segments = hatch(region.to_polygons(), angle_rad, spacing, min_length=w)
+        segments = hatch(region.to_polygons(), direction, spacing, min_length=w)
         lines = chain_lanes(segments, link_max)
         if lines:
             groups.append([Path(feature, p, False) for p in lines])
@@ -808,6 +824,19 @@ class PrusaSlicer:
         if s.nozzle_temperature_c is not None:
             args["temperature"] = args["first-layer-temperature"] = round(s.nozzle_temperature_c)
         out = ["--use-relative-e-distances"]
+        if s.support:
+            # PrusaSlicer's threshold is the slope from the horizontal plane, ours from vertical
+            out += ["--support-material", "--support-material-auto"]
+            args.update({"support-material-threshold": 90.0 - s.support_angle_deg,
+                         "support-material-spacing": s.support_spacing_mm,
+                         "support-material-interface-layers": s.support_interface_layers,
+                         "support-material-contact-distance": s.support_z_gap_mm,
+                         "support-material-xy-spacing": s.support_xy_gap_mm,
+                         "support-material-speed": s.support_feedrate_mm_min / 60.0,
+                         "support-material-interface-speed": s.support_feedrate_mm_min / 60.0,
+                         "support-material-extrusion-width": w})
+        else:
+            out += ["--no-support-material"]
         for key, value in args.items():
             out += ["--" + key, value if isinstance(value, str) else "%g" % value]
         return out

@@ -9,7 +9,8 @@ overhang
 bridge
   an overhang island anchored on the layer below at two or more places,
   every point of it within ``bridge_max_mm / 2`` of the layer below, is a
-  bridge and gets no support.
+  bridge and gets no support; the slicer lays its solid infill across the
+  gap, from the largest anchor towards the next.
 support area
   projected down from every overhang to the bed or to the part: going down
   layer by layer, ``demand[i] = (demand[i + 1] - model[i]) | overhang[i + 1]``
@@ -38,7 +39,7 @@ from typing import List, NamedTuple, Optional
 import manifold3d
 import numpy as np
 
-__all__ = ["SupportLayer", "overhangs", "support_layers", "SUPPORT", "SUPPORT_INTERFACE"]
+__all__ = ["SupportLayer", "overhangs", "support_layers", "prism", "SUPPORT", "SUPPORT_INTERFACE"]
 
 #: G-code feature names, as PrusaSlicer writes them after ``;TYPE:``
 SUPPORT = "Support material"
@@ -70,39 +71,73 @@ def _opened(cs, r):
 
 
 def overhangs(outlines, settings):
-    """Overhangs of every layer that are not bridges: a list of L
-    CrossSections (the first is empty: layer 0 lies on the bed).
+    """Overhangs of every layer: (``over``, ``bridges``).
+
+    ``over``: a list of L CrossSections, the overhangs that need support
+    (the first is empty: layer 0 lies on the bed).  ``bridges``: a list of L
+    lists of (CrossSection, angle_rad), the overhang islands that are
+    bridges and the direction from one anchor to the other (the solid
+    infill there is laid that way, across the gap).
 
     ``outlines``: the whole model's cross-section per layer (L CrossSections,
     mm) on the slicer's layer grid.
     """
     s = settings
     reach = s.layer_height_mm * math.tan(math.radians(s.support_angle_deg))
-    out = [_empty()]
+    over, bridges = [_empty()], [[]]
     for i in range(1, len(outlines)):
         cur, below = outlines[i], outlines[i - 1]
+        spans = []
+        bridges.append(spans)
         if cur.is_empty():
-            out.append(_empty())
+            over.append(_empty())
             continue
-        over = _opened(cur - below.offset(reach, manifold3d.JoinType.Round), s.bead_width_mm / 4.0)
-        if over.is_empty() or below.is_empty():
-            out.append(over)
+        found = _opened(cur - below.offset(reach, manifold3d.JoinType.Round), s.bead_width_mm / 4.0)
+        if found.is_empty() or below.is_empty():
+            over.append(found)
             continue
-        keep = [isl for isl in over.decompose()
-                if isl.area() > _MIN_AREA_MM2 and not _is_bridge(isl, below, s)]
-        out.append(manifold3d.CrossSection.batch_boolean(keep, manifold3d.OpType.Add) if keep else _empty())
-    return out
+        keep = []
+        for isl in found.decompose():
+            if isl.area() <= _MIN_AREA_MM2:
+                continue
+            angle = _bridge_angle(isl, below, s)
+            if angle is None:
+                keep.append(isl)
+            else:
+                spans.append((isl, angle))
+        over.append(manifold3d.CrossSection.batch_boolean(keep, manifold3d.OpType.Add) if keep else _empty())
+    return over, bridges
 
 
-def _is_bridge(island, below, s):
-    """True if the overhang ``island`` spans a gap of at most ``bridge_max_mm``:
-    it touches the layer ``below`` at two or more separate places and no point
-    of it is further than ``bridge_max_mm / 2`` from the layer below."""
-    anchors = island.offset(s.bead_width_mm, manifold3d.JoinType.Round) ^ below
-    if len([a for a in anchors.decompose() if a.area() > _MIN_AREA_MM2]) < 2:
-        return False
+def _bridge_angle(island, below, s):
+    """If the overhang ``island`` spans a gap of at most ``bridge_max_mm`` (it
+    touches the layer ``below`` at two or more separate places and no point
+    of it is further than ``bridge_max_mm / 2`` from the layer below): the
+    direction (rad) from the centroid of its largest anchor to that of the
+    next largest; else None."""
+    touch = island.offset(s.bead_width_mm, manifold3d.JoinType.Round) ^ below
+    anchors = sorted((a for a in touch.decompose() if a.area() > _MIN_AREA_MM2), key=lambda a: -a.area())
+    if len(anchors) < 2:
+        return None
     far = island - below.offset(s.bridge_max_mm / 2.0, manifold3d.JoinType.Round)
-    return far.is_empty() or far.area() < _MIN_AREA_MM2
+    if not (far.is_empty() or far.area() < _MIN_AREA_MM2):
+        return None
+    (x0, y0), (x1, y1) = _centroid(anchors[0]), _centroid(anchors[1])
+    return math.atan2(y1 - y0, x1 - x0)
+
+
+def _centroid(cs):
+    """Area centroid (x, y) of a CrossSection (mm), from its polygons
+    (holes wound the other way, so the shoelace sums handle them)."""
+    a = cx = cy = 0.0
+    for p in cs.to_polygons():
+        p = np.asarray(p, float)
+        q = np.roll(p, -1, axis=0)
+        c = p[:, 0] * q[:, 1] - q[:, 0] * p[:, 1]
+        a += c.sum() / 2.0
+        cx += ((p[:, 0] + q[:, 0]) * c).sum() / 6.0
+        cy += ((p[:, 1] + q[:, 1]) * c).sum() / 6.0
+    return (cx / a, cy / a) if a else (0.0, 0.0)
 
 
 def prism(keep, outlines):
@@ -129,7 +164,7 @@ def prism(keep, outlines):
     return box
 
 
-def support_layers(outlines, heights, settings, keep=None):
+def support_layers(outlines, heights, settings, keep=None, over=None):
     """The support of every layer, from the whole model's ``outlines``.
 
     Parameters
@@ -141,6 +176,8 @@ def support_layers(outlines, heights, settings, keep=None):
     settings : ambots.slicer.SliceSettings
     keep : list of (n (3,), offset) or None
       The part's prism (its kept side n . p >= offset); None: the whole bed.
+    over : list of L CrossSection or None
+      :func:`overhangs` of ``outlines`` (its first item) if already found.
 
     Returns
     -------
@@ -151,7 +188,8 @@ def support_layers(outlines, heights, settings, keep=None):
     n = len(outlines)
     if not s.support or n < 2:
         return [None] * n
-    over = overhangs(outlines, s)
+    if over is None:
+        over = overhangs(outlines, s)[0]
     if all(o.is_empty() for o in over):
         return [None] * n
     clip = prism(keep, outlines)
