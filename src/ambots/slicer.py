@@ -564,19 +564,23 @@ def _start_at(path, i):
 
 
 def order_paths(paths, start_xy):
-    """``paths`` (list of Path, e.g. one layer's support) in a nearest-first
-    order from ``start_xy`` ((2,) mm): loops first (each started at its
-    vertex nearest the nozzle), then lines (each from its nearer end)."""
+    """``paths`` (list of Path, e.g. one layer's support) in print order from
+    ``start_xy`` ((2,) mm): loops nearest first, each started at its vertex
+    nearest the nozzle; then the lines in their given order (the lanes of
+    :func:`chain_lanes`), each from its nearer end."""
     pos = np.asarray(start_xy, dtype=float)
+    loops = [p for p in paths if p.closed]
     out = []
-    for group in ([p for p in paths if p.closed], [p for p in paths if not p.closed]):
-        group = list(group)
-        while group:
-            j = int(np.argmin([_nearest(p, pos)[1] for p in group]))
-            path = group.pop(j)
+    while loops:
+        path = loops.pop(int(np.argmin([_nearest(p, pos)[1] for p in loops])))
+        path = _start_at(path, _nearest(path, pos)[0])
+        out.append(path)
+        pos = path.points[0]
+    for path in paths:
+        if not path.closed:
             path = _start_at(path, _nearest(path, pos)[0])
             out.append(path)
-            pos = path.points[0] if path.closed else path.points[-1]
+            pos = path.points[-1]
     return out
 
 

@@ -224,8 +224,9 @@ def support_layers(outlines, heights, settings, keep=None, over=None):
             inner = region.offset(-w / 2.0 - min(spacing, s.bead_spacing_mm(h)) / 2.0, manifold3d.JoinType.Miter)
             if inner.is_empty():
                 continue
+            # zig-zag lanes: a jump to the next line up to 1.5 spacings is extruded
             lines = chain_lanes(hatch(inner.to_polygons(), angle + turn * math.pi / 2.0, spacing,
-                                      min_length=w / 2.0), 2.0 * w if turn else 0.0)
+                                      min_length=w / 2.0), 1.5 * spacing)
             target += [Path(feature, p, False) for p in lines]
         if layer_paths or contact_paths:
             out[i] = SupportLayer(contact_paths, layer_paths, area)
