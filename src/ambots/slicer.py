@@ -15,9 +15,11 @@ The built-in pipeline (:meth:`BuiltinSlicer.slice`) is a sequence of steps::
     layers      layer_heights, slice_layers   mesh -> one outline per layer
     regions     interior_regions, plan_island outline -> islands; the infill area
                                               of each, split into solid and sparse
+    support     ambots.support                overhangs and bridges (of the whole
+                                              model), support lines per layer
     perimeters  perimeter_loops               inward offsets of the outline
     infill      hatch, chain_lanes            clipped parallel lines, zig-zag lanes
-    ordering    order_islands                 island order, seams, directions
+    ordering    order_islands, order_paths    island order, seams, directions
     G-code      GcodeWriter                   travel, retraction, E, comments
 
 Geometry is done by manifold3d (slices, offsets, booleans on
