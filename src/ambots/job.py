@@ -219,9 +219,10 @@ def slice_parts(parts, slicer="builtin", settings=None, whole=None):
     (``Part.planes``), so every arm prints the support under its own part
     and a cut makes no overhang.  The prusa back end supports each part on
     its own (it cannot take the whole model)."""
-    from ambots.slicer import slice_mesh
+    from ambots.slicer import SliceSettings, WholeModel, slice_mesh
     if slicer != "builtin" or whole is None or len(parts) < 2:
         return {p.arm.name: slice_mesh(p.to_trimesh(), settings, backend=slicer) for p in parts if not p.empty}
+    whole = WholeModel(whole, settings or SliceSettings())          # sliced once for all the parts
     return {p.arm.name: slice_mesh(p.to_trimesh(), settings, backend=slicer, whole=whole, keep=p.planes or None)
             for p in parts if not p.empty}
 

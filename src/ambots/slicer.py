@@ -191,9 +191,10 @@ def slice_mesh(mesh, settings=None, backend="builtin", whole=None, keep=None, **
       ``None``: the defaults.
     backend : str
       ``"builtin"`` or ``"prusa"`` (see :data:`BACKENDS`).
-    whole : trimesh.Trimesh or None
+    whole : trimesh.Trimesh, WholeModel or None
       When ``mesh`` is a part of a larger placed model (an arm's part of a
-      job), that whole model: the built-in back end finds overhangs and
+      job), that whole model (a :class:`WholeModel` is sliced once for all
+      the parts): the built-in back end finds overhangs and
       keeps support clear of the model on it, so a cut makes no overhang.
       The prusa back end cannot take it (it supports each part on its own).
     keep : list of (n (3,), offset) or None
@@ -260,12 +261,12 @@ class BuiltinSlicer:
         # and bridges, whose solid infill is laid across the gap
         supports, bridges = [None] * len(outlines), [[]] * len(outlines)
         if s.support:
-            whole_outlines, whole_heights = outlines, heights
-            if whole is not None:
-                _check_above_bed(whole)
-                wz, whole_heights = layer_heights(float(whole.bounds[1][2]), s)
-                whole_outlines = slice_layers(to_manifold(whole), wz - whole_heights / 2.0, s.resolution_mm)
-            over, spans = overhangs(whole_outlines, s)
+            if whole is None:
+                ctx = WholeModel(mesh, s, (outlines, heights))
+            else:
+                ctx = whole if isinstance(whole, WholeModel) and whole.settings == s else WholeModel(
+                    whole.mesh if isinstance(whole, WholeModel) else whole, s)
+            whole_outlines, whole_heights, over, spans = ctx.layers()
             supports = (support_layers(whole_outlines, whole_heights, s, keep, over) + supports)[:len(outlines)]
             bridges = (spans + bridges)[:len(outlines)]
         writer = GcodeWriter(s, source_name(mesh))
@@ -287,6 +288,29 @@ class BuiltinSlicer:
             # 6. G-code, with travel and retraction
             writer.extrude_paths([path for paths in order_islands(islands, writer.xy) for path in paths], h)
         return writer.finish()
+
+
+class WholeModel:
+    """The whole placed model (trimesh, mm) that parts are cut from, sliced
+    once for all of them: its outlines per layer, layer heights, overhangs
+    and bridges (:func:`ambots.support.overhangs`), computed on first use.
+    ``layers``: (outlines, heights) already sliced, if any."""
+
+    def __init__(self, mesh, settings, layers=None):
+        self.mesh, self.settings = mesh, settings
+        self._layers = None
+        if layers is not None:
+            self._layers = tuple(layers) + overhangs(layers[0], settings)
+
+    def layers(self):
+        """(outlines, heights, overhangs, bridges), one item per layer."""
+        if self._layers is None:
+            s = self.settings
+            _check_above_bed(self.mesh)
+            z, h = layer_heights(float(self.mesh.bounds[1][2]), s)
+            outlines = slice_layers(to_manifold(self.mesh), z - h / 2.0, s.resolution_mm)
+            self._layers = (outlines, h) + overhangs(outlines, s)
+        return self._layers
 
 
 # ----------------------------------------------------------------- layers
