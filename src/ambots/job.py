@@ -288,10 +288,19 @@ def split(mesh, cell, arms, seam="straight", settings=None, reach=None):
     return partition(model, cell, arms, seam=seam, est=est, reach_cache=reach, layers=layers)
 
 
-def slice_parts(parts, slicer="builtin", settings=None):
-    """Step 3: G-code text per arm name."""
-    from ambots.slicer import slice_mesh
-    return {p.arm.name: slice_mesh(p.to_trimesh(), settings, backend=slicer) for p in parts if not p.empty}
+def slice_parts(parts, slicer="builtin", settings=None, whole=None):
+    """Step 3: G-code text per arm name.  ``whole``: the placed model the
+    parts were cut from (trimesh, mm): the built-in slicer finds the
+    overhangs on it and prints each part's support inside that part's prism
+    (``Part.planes``), so every arm prints the support under its own part
+    and a cut makes no overhang.  The prusa back end supports each part on
+    its own (it cannot take the whole model)."""
+    from ambots.slicer import SliceSettings, WholeModel, slice_mesh
+    if slicer != "builtin" or whole is None or len(parts) < 2:
+        return {p.arm.name: slice_mesh(p.to_trimesh(), settings, backend=slicer) for p in parts if not p.empty}
+    whole = WholeModel(whole, settings or SliceSettings())          # sliced once for all the parts
+    return {p.arm.name: slice_mesh(p.to_trimesh(), settings, backend=slicer, whole=whole, keep=p.planes or None)
+            for p in parts if not p.empty}
 
 
 def coordinate(sliced, parts, cell, mode="concurrent", idle=(), **kw):
@@ -370,12 +379,12 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
     reach = {}                           # the reach checks of this mesh, shared by the plans
     if len(arms) > 1:
         parts = split(job.mesh, cell, arms, seam, settings, reach)
-        sliced = slice_parts(parts, slicer, settings)
+        sliced = slice_parts(parts, slicer, settings, job.mesh)
         programs = coordinate(sliced, parts, cell, mode, idle=idle)
         plans.append(_plan(parts, sliced, programs, [a.name for a in arms], mode, cell))
     if len(arms) == 1:                   # one arm: its plan (an arm that cannot reach the model is an error)
         parts = split(job.mesh, cell, arms, seam, settings)
-        sliced = slice_parts(parts, slicer, settings)
+        sliced = slice_parts(parts, slicer, settings, job.mesh)
         programs = coordinate(sliced, parts, cell, mode, idle=idle)
         plans.append(_plan(parts, sliced, programs, [arms[0].name], "alone", cell))
     elif choose:                         # each arm alone, on the same G-code of the whole model (read once)

@@ -15,9 +15,11 @@ The built-in pipeline (:meth:`BuiltinSlicer.slice`) is a sequence of steps::
     layers      layer_heights, slice_layers   mesh -> one outline per layer
     regions     interior_regions, plan_island outline -> islands; the infill area
                                               of each, split into solid and sparse
+    support     ambots.support                overhangs and bridges (of the whole
+                                              model), support lines per layer
     perimeters  perimeter_loops               inward offsets of the outline
     infill      hatch, chain_lanes            clipped parallel lines, zig-zag lanes
-    ordering    order_islands                 island order, seams, directions
+    ordering    order_islands, order_paths    island order, seams, directions
     G-code      GcodeWriter                   travel, retraction, E, comments
 
 Geometry is done by manifold3d (slices, offsets, booleans on
@@ -39,12 +41,14 @@ import numpy as np
 import ambots
 from ambots.errors import AmbotsError, ConfigError
 from ambots.mesh import to_manifold, source_name
+from ambots.support import SUPPORT, SUPPORT_INTERFACE, overhangs, support_layers
 
 #: G-code feature names, as PrusaSlicer writes them after ``;TYPE:``
 EXTERNAL_PERIMETER = "External perimeter"
 PERIMETER = "Perimeter"
 SOLID_INFILL = "Solid infill"
 SPARSE_INFILL = "Internal infill"
+#: (support: SUPPORT = "Support material", SUPPORT_INTERFACE = "Support material interface")
 
 #: config file of the ``prusa`` back end
 DEFAULT_PRUSA_INI = ambots.data_path("config", "prusa", "ambots_pla.ini")
@@ -97,6 +101,22 @@ class SliceSettings:
     nozzle_temperature_c: Optional[float] = None
     #: outline simplification tolerance
     resolution_mm: float = 0.0125
+    #: print support under overhangs (:mod:`ambots.support`); a model without
+    #: overhangs gets none either way
+    support: bool = True
+    #: overhangs steeper than this from vertical are supported (0 < angle < 90)
+    support_angle_deg: float = 45.0
+    #: overhangs spanning at most this between two anchors are bridged, not supported
+    bridge_max_mm: float = 10.0
+    #: distance between the lines of sparse support
+    support_spacing_mm: float = 2.0
+    #: dense layers at the top of the support (>= 1)
+    support_interface_layers: int = 2
+    #: the contact layer under an overhang is printed this much lower (0 <= gap < layer height)
+    support_z_gap_mm: float = 0.1
+    #: clearance between the support and the model beside it
+    support_xy_gap_mm: float = 0.3
+    support_feedrate_mm_min: float = 3000.0
 
     def __post_init__(self):
         def need(ok, field, message):
@@ -106,6 +126,9 @@ class SliceSettings:
             v = getattr(self, f.name)
             if v is None and f.name == "nozzle_temperature_c":
                 continue
+            if f.name == "support":
+                need(isinstance(v, bool), f.name, "must be true or false, got %r" % (v,))
+                continue
             need(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v),
                  f.name, "must be a finite number, got %r" % (v,))
         for name in ("layer_height_mm", "first_layer_height_mm", "nozzle_diameter_mm",
@@ -113,12 +136,22 @@ class SliceSettings:
                      "external_perimeter_feedrate_mm_min", "infill_feedrate_mm_min",
                      "solid_infill_feedrate_mm_min", "first_layer_feedrate_mm_min",
                      "travel_feedrate_mm_min", "z_feedrate_mm_min", "retract_feedrate_mm_min",
-                     "resolution_mm"):
+                     "resolution_mm", "support_spacing_mm", "support_feedrate_mm_min"):
             need(getattr(self, name) > 0, name, "must be > 0, got %r" % getattr(self, name))
         for name in ("perimeters", "top_solid_layers", "bottom_solid_layers"):
             v = getattr(self, name)
             need(int(v) == v and v >= 0, name, "must be a whole number >= 0, got %r" % v)
-        for name in ("retract_length_mm", "retract_min_travel_mm", "z_hop_mm"):
+        need(int(self.support_interface_layers) == self.support_interface_layers
+             and self.support_interface_layers >= 1, "support_interface_layers",
+             "must be a whole number >= 1, got %r" % self.support_interface_layers)
+        need(0 < self.support_angle_deg < 90, "support_angle_deg",
+             "must be within 0..90 (exclusive), got %r" % self.support_angle_deg)
+        need(0 <= self.support_z_gap_mm < min(self.layer_height_mm, self.first_layer_height_mm),
+             "support_z_gap_mm", "must be >= 0 and below the layer height, got %r" % self.support_z_gap_mm)
+        need(self.support_spacing_mm >= self.bead_width_mm, "support_spacing_mm",
+             "must be at least bead_width_mm (%r), got %r" % (self.bead_width_mm, self.support_spacing_mm))
+        for name in ("retract_length_mm", "retract_min_travel_mm", "z_hop_mm", "bridge_max_mm",
+                     "support_xy_gap_mm"):
             need(getattr(self, name) >= 0, name, "must be >= 0, got %r" % getattr(self, name))
         need(0 <= self.infill_density <= 1, "infill_density",
              "must be within 0..1, got %r" % self.infill_density)
@@ -147,7 +180,7 @@ class SliceSettings:
 
 # ------------------------------------------------------------- interface
 
-def slice_mesh(mesh, settings=None, backend="builtin", **options):
+def slice_mesh(mesh, settings=None, backend="builtin", whole=None, keep=None, **options):
     """Slice ``mesh`` (mm, placed on the bed) and return the G-code text.
 
     Parameters
@@ -158,6 +191,15 @@ def slice_mesh(mesh, settings=None, backend="builtin", **options):
       ``None``: the defaults.
     backend : str
       ``"builtin"`` or ``"prusa"`` (see :data:`BACKENDS`).
+    whole : trimesh.Trimesh, WholeModel or None
+      When ``mesh`` is a part of a larger placed model (an arm's part of a
+      job), that whole model (a :class:`WholeModel` is sliced once for all
+      the parts): the built-in back end finds overhangs and
+      keeps support clear of the model on it, so a cut makes no overhang.
+      The prusa back end cannot take it (it supports each part on its own).
+    keep : list of (n (3,), offset) or None
+      The part's prism (:attr:`ambots.partition.Part.planes`, kept side
+      n . p >= offset): the built-in back end prints the support there only.
     options
       Passed to the back end's constructor, e.g. ``ini_path=`` for prusa.
     """
@@ -166,7 +208,10 @@ def slice_mesh(mesh, settings=None, backend="builtin", **options):
     except KeyError:
         raise SlicerError("unknown slicer back end %r; available: %s"
                           % (backend, ", ".join(sorted(BACKENDS)))) from None
-    return cls(settings, **options).slice(mesh)
+    slicer = cls(settings, **options)
+    if cls is BuiltinSlicer:
+        return slicer.slice(mesh, whole=whole, keep=keep)
+    return slicer.slice(mesh)
 
 
 def _check_above_bed(mesh):
@@ -189,15 +234,17 @@ class Path(NamedTuple):
 
 class BuiltinSlicer:
     """Planar slicer in numpy and manifold3d: perimeters, rectilinear infill,
-    solid top and bottom layers, retraction.  No supports, skirt or gap fill."""
+    solid top and bottom layers, support (:mod:`ambots.support`), retraction.
+    No skirt or gap fill."""
 
     name = "builtin"
 
     def __init__(self, settings=None):
         self.settings = settings or SliceSettings()
 
-    def slice(self, mesh):
-        """G-code text (str) for ``mesh`` (trimesh.Trimesh, mm, on the bed)."""
+    def slice(self, mesh, whole=None, keep=None):
+        """G-code text (str) for ``mesh`` (trimesh.Trimesh, mm, on the bed);
+        ``whole``, ``keep``: see :func:`slice_mesh`."""
         s = self.settings
         _check_above_bed(mesh)
         solid = to_manifold(mesh)
@@ -209,18 +256,61 @@ class BuiltinSlicer:
                               "is thinner than a layer)" % (source_name(mesh), s.layer_height_mm))
         # 2. regions: where each layer is covered above and below (-> sparse)
         interiors = interior_regions(outlines, s.bottom_solid_layers, s.top_solid_layers)
+        # 2b. support, from the whole model (on its layer grid: the same
+        # grid from the bed up), printed in the part's prism only
+        # and bridges, whose solid infill is laid across the gap
+        supports, bridges = [None] * len(outlines), [[]] * len(outlines)
+        if s.support:
+            if whole is None:
+                ctx = WholeModel(mesh, s, (outlines, heights))
+            else:
+                ctx = whole if isinstance(whole, WholeModel) and whole.settings == s else WholeModel(
+                    whole.mesh if isinstance(whole, WholeModel) else whole, s)
+            whole_outlines, whole_heights, over, spans = ctx.layers()
+            supports = (support_layers(whole_outlines, whole_heights, s, keep, over) + supports)[:len(outlines)]
+            bridges = (spans + bridges)[:len(outlines)]
         writer = GcodeWriter(s, source_name(mesh))
         for i, (z, h, outline, interior) in enumerate(zip(z_tops, heights, outlines, interiors)):
-            if outline.is_empty():
+            sup = supports[i]
+            if outline.is_empty() and sup is None:
                 continue
             angle = math.radians(s.infill_angle_deg + 90.0 * (i % 2))
-            islands = [plan_island(island, interior, h, angle, s)  # 3.-4. perimeters, infill
+            islands = [plan_island(island, interior, h, angle, s, bridges[i])  # 3.-4. perimeters, infill
                        for island in outline.decompose()]
             writer.layer_change(z, h, first=(i == 0))
+            if sup is not None:          # support first: the contact layer z_gap lower, then the rest
+                if sup.contact:
+                    writer.extrude_paths(order_paths(sup.contact, writer.xy), h - s.support_z_gap_mm,
+                                         z=z - s.support_z_gap_mm)
+                writer.set_z(z)
+                writer.extrude_paths(order_paths(sup.paths, writer.xy), h)
             # 5. ordering (from where the nozzle is at the layer change), then
             # 6. G-code, with travel and retraction
             writer.extrude_paths([path for paths in order_islands(islands, writer.xy) for path in paths], h)
         return writer.finish()
+
+
+class WholeModel:
+    """The whole placed model (trimesh, mm) that parts are cut from, sliced
+    once for all of them: its outlines per layer, layer heights, overhangs
+    and bridges (:func:`ambots.support.overhangs`), computed on first use.
+    ``layers``: (outlines, heights) already sliced, if any."""
+
+    def __init__(self, mesh, settings, layers=None):
+        self.mesh, self.settings = mesh, settings
+        self._layers = None
+        if layers is not None:
+            self._layers = tuple(layers) + overhangs(layers[0], settings)
+
+    def layers(self):
+        """(outlines, heights, overhangs, bridges), one item per layer."""
+        if self._layers is None:
+            s = self.settings
+            _check_above_bed(self.mesh)
+            z, h = layer_heights(float(self.mesh.bounds[1][2]), s)
+            outlines = slice_layers(to_manifold(self.mesh), z - h / 2.0, s.resolution_mm)
+            self._layers = (outlines, h) + overhangs(outlines, s)
+        return self._layers
 
 
 # ----------------------------------------------------------------- layers
@@ -271,7 +361,7 @@ def interior_regions(outlines, bottom_layers, top_layers):
     return out
 
 
-def plan_island(island, interior, height, angle_rad, settings):
+def plan_island(island, interior, height, angle_rad, settings, bridges=()):
     """Paths of one island (one outline with its holes) of a layer, in the
     order of printing: perimeters from the innermost loop out to the
     external one, then solid infill, then sparse infill.
@@ -285,6 +375,10 @@ def plan_island(island, interior, height, angle_rad, settings):
     height : float, mm
     angle_rad : float
       Infill direction.
+    bridges : list of (CrossSection, float)
+      Bridges of this layer and their directions (rad,
+      :func:`ambots.support.overhangs`): the solid infill over them (and a
+      bead width into their anchors) runs that way, across the gap.
 
     Returns
     -------
@@ -303,11 +397,20 @@ def plan_island(island, interior, height, angle_rad, settings):
     solid = clip - interior
     sparse = clip ^ interior
     link_max = 2.0 * w  # shorter jumps between lines are extruded
-    for region, spacing, feature in ((solid, sp, SOLID_INFILL),
-                                     (sparse, sp / max(s.infill_density, 1e-9), SPARSE_INFILL)):
+    regions = []
+    for span, span_angle in bridges:
+        if solid.is_empty():
+            break
+        part = solid ^ span.offset(2.0 * w, manifold3d.JoinType.Round)
+        if not part.is_empty():
+            regions.append((part, sp, SOLID_INFILL, span_angle))
+            solid = solid - part
+    regions += [(solid, sp, SOLID_INFILL, angle_rad),
+                (sparse, sp / max(s.infill_density, 1e-9), SPARSE_INFILL, angle_rad)]
+    for region, spacing, feature, direction in regions:
         if region.is_empty() or (feature == SPARSE_INFILL and s.infill_density <= 0):
             continue
-        segments = hatch(region.to_polygons(), angle_rad, spacing, min_length=w)
+        segments = hatch(region.to_polygons(), direction, spacing, min_length=w)
         lines = chain_lanes(segments, link_max)
         if lines:
             groups.append([Path(feature, p, False) for p in lines])
@@ -486,6 +589,27 @@ def _start_at(path, i):
     return path._replace(points=path.points[::-1]) if i == -1 else path
 
 
+def order_paths(paths, start_xy):
+    """``paths`` (list of Path, e.g. one layer's support) in print order from
+    ``start_xy`` ((2,) mm): loops nearest first, each started at its vertex
+    nearest the nozzle; then the lines in their given order (the lanes of
+    :func:`chain_lanes`), each from its nearer end."""
+    pos = np.asarray(start_xy, dtype=float)
+    loops = [p for p in paths if p.closed]
+    out = []
+    while loops:
+        path = loops.pop(int(np.argmin([_nearest(p, pos)[1] for p in loops])))
+        path = _start_at(path, _nearest(path, pos)[0])
+        out.append(path)
+        pos = path.points[0]
+    for path in paths:
+        if not path.closed:
+            path = _start_at(path, _nearest(path, pos)[0])
+            out.append(path)
+            pos = path.points[-1]
+    return out
+
+
 # ----------------------------------------------------------------- G-code
 
 class GcodeWriter:
@@ -520,7 +644,9 @@ class GcodeWriter:
         self.feeds = {EXTERNAL_PERIMETER: s.external_perimeter_feedrate_mm_min,
                       PERIMETER: s.perimeter_feedrate_mm_min,
                       SOLID_INFILL: s.solid_infill_feedrate_mm_min,
-                      SPARSE_INFILL: s.infill_feedrate_mm_min}
+                      SPARSE_INFILL: s.infill_feedrate_mm_min,
+                      SUPPORT: s.support_feedrate_mm_min,
+                      SUPPORT_INTERFACE: s.support_feedrate_mm_min}
 
     def layer_change(self, z, height, first=False):
         """Start a layer whose top is at ``z`` (mm), ``height`` thick."""
@@ -532,6 +658,14 @@ class GcodeWriter:
         self.chunks.append(";LAYER_CHANGE\n;Z:%.3f\n;HEIGHT:%.3f\nG1 Z%.3f F%d\n"
                            % (z, height, z, self.s.z_feedrate_mm_min))
         self.feature = None
+
+    def set_z(self, z):
+        """Move the nozzle to height ``z`` (mm) within the layer (the
+        support's contact layer is printed lower than the layer's top)."""
+        z = float(z)
+        if abs(z - self.z) > 1e-9:
+            self.chunks.append("G1 Z%.3f F%d\n" % (z, self.s.z_feedrate_mm_min))
+            self.z = z
 
     def extrude(self, path, height):
         """Travel to the start of ``path`` and extrude along it."""
@@ -563,11 +697,15 @@ class GcodeWriter:
         self.chunks.append("G1 F%d\n" % feed)
         self.chunks.append(("G1 X%.3f Y%.3f E%.5f\n" * len(e)) % tuple(rows))
 
-    def extrude_paths(self, paths, height):
+    def extrude_paths(self, paths, height, z=None):
         """:meth:`extrude` of each of ``paths`` in turn (the same text), the
         lengths, E and numbers to print of all of them computed at once (a
         layer has tens of paths: per path, numpy's cost per call was most
-        of the writer's time)."""
+        of the writer's time).  ``z`` (mm): print them at this height (the
+        support's contact layer, below the layer's top); None: where the
+        nozzle is."""
+        if z is not None and paths:
+            self.set_z(z)
         if len(paths) < 2:
             for path in paths:
                 self.extrude(path, height)
@@ -716,6 +854,19 @@ class PrusaSlicer:
         if s.nozzle_temperature_c is not None:
             args["temperature"] = args["first-layer-temperature"] = round(s.nozzle_temperature_c)
         out = ["--use-relative-e-distances"]
+        if s.support:
+            # PrusaSlicer's threshold is the slope from the horizontal plane, ours from vertical
+            out += ["--support-material", "--support-material-auto"]
+            args.update({"support-material-threshold": 90.0 - s.support_angle_deg,
+                         "support-material-spacing": s.support_spacing_mm,
+                         "support-material-interface-layers": s.support_interface_layers,
+                         "support-material-contact-distance": s.support_z_gap_mm,
+                         "support-material-xy-spacing": s.support_xy_gap_mm,
+                         "support-material-speed": s.support_feedrate_mm_min / 60.0,
+                         "support-material-interface-speed": s.support_feedrate_mm_min / 60.0,
+                         "support-material-extrusion-width": w})
+        else:
+            out += ["--no-support-material"]
         for key, value in args.items():
             out += ["--" + key, value if isinstance(value, str) else "%g" % value]
         return out

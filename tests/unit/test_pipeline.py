@@ -39,14 +39,15 @@ def cell():
 def jobs(cell, tmp_path_factory):
     """Each model run through the whole pipeline once (default cell, both
     arms -- these parts are compact, so the planner alone would give each
-    to one arm --, builtin slicer, concurrent mode), from a file as a user
-    would give it."""
+    to one arm --, builtin slicer, concurrent mode, support off: the checks are
+    of the part's own material; support is tests/unit/test_support.py's), from a
+    file as a user would give it."""
     folder = tmp_path_factory.mktemp("pipeline")
     out = {}
     for name in NAMES:
         path = os.path.join(str(folder), name + ".stl")
         MODELS[name]().export(path)
-        out[name] = run_job(path, cell, list(cell.arms))
+        out[name] = run_job(path, cell, list(cell.arms), settings=SETTINGS)   # support off: the part's own material
     return out
 
 

@@ -18,7 +18,9 @@ from ambots.mesh import place_on_bed
 from ambots.slicer import (DEFAULT_PRUSA_INI, BuiltinSlicer, PrusaSlicer, SliceSettings,
                            SlicerError, hatch, layer_heights, slice_mesh)
 
-SETTINGS = SliceSettings()
+#: the model's own toolpaths, checked against its cross-sections: support off
+#: (support is tested in tests/unit/test_support.py)
+SETTINGS = SliceSettings(support=False)
 W = SETTINGS.bead_width_mm
 
 

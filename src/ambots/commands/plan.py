@@ -20,8 +20,9 @@ def register(sub):
 
 
 def plan_job(model, cell, arms=None, slicer="builtin", mode="concurrent", seam="straight", scale=1.0,
-             slow=None, out=None, seed=0):
-    """Run the steps; returns the report dict (and writes files if ``out``)."""
+             slow=None, out=None, seed=0, settings=None):
+    """Run the steps; returns the report dict (and writes files if ``out``).
+    ``settings``: :class:`~ambots.slicer.SliceSettings` (None: the defaults)."""
     import json
     import os
     import time
@@ -30,7 +31,7 @@ def plan_job(model, cell, arms=None, slicer="builtin", mode="concurrent", seam="
     from ambots.sim import check_motion, report, simulate
 
     t0 = time.perf_counter()
-    job = run_job(model, cell, arms, slicer, mode, seam, scale)
+    job = run_job(model, cell, arms, slicer, mode, seam, scale, settings=settings)
     t_job = time.perf_counter() - t0
     result = simulate(job.programs, cell, slow=slow, seed=seed)
     motion = check_motion(result, cell)
@@ -121,8 +122,9 @@ def run(args):
         except ValueError:
             raise ConfigError("--slow", item, "expected ARM=FACTOR or ARM=LO:HI with numbers > 0, "
                                               "e.g. ur10=1.3 or ur10=0.5:2.5") from None
+    from ambots.commands.slice import job_settings
     rep = plan_job(args.model, cell, arms, args.slicer, args.mode, args.seam, args.scale, slow, args.out,
-                   args.seed)
+                   args.seed, job_settings(args))
     print("%s -> %s: %s, %s mode, makespan %.0f s (simulated), %s, wall %.1f s" % (
         args.model, args.out, rep["cell"], rep["mode"], rep["makespan_s"],
         "finished" if rep["finished"] else "NOT finished: " + rep["reason"], rep["wall_time_s"]))

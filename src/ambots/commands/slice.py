@@ -22,7 +22,16 @@ def add_job_arguments(p, out):
                    help="between two arms' parts: straight (they meet at a plane) or interlock (the boundary "
                         "alternates layer by layer either side of the plane; overlap is the same)")
     p.add_argument("--scale", type=float, default=1.0, help="scale factor applied to the model")
+    p.add_argument("--support", choices=("on", "off"), default="on",
+                   help="support under overhangs steeper than 45 deg from vertical (default: on; a model "
+                        "without overhangs gets none either way)")
     p.add_argument("--out", default=out, help="output folder (default: %s)" % out)
+
+
+def job_settings(args):
+    """The :class:`~ambots.slicer.SliceSettings` of the job options (``--support``)."""
+    from ambots.slicer import SliceSettings
+    return SliceSettings(support=getattr(args, "support", "on") == "on")
 
 
 def run(args):
@@ -31,7 +40,8 @@ def run(args):
 
     cell = load_cell(args.cell or default_cell_path())
     arms = [cell.arm(n.strip()) for n in args.arms.split(",")] if args.arms else None
-    job = run_job(args.model, cell, arms, args.slicer, args.mode, args.seam, args.scale)
+    job = run_job(args.model, cell, arms, args.slicer, args.mode, args.seam, args.scale,
+                  settings=job_settings(args))
     summary = write_job(job, args.out)
     print("%s -> %s: %s, %s slicer, %s mode, model %.0f mm3" % (
         args.model, args.out, cell.name, args.slicer, args.mode, summary["model_volume_mm3"]))
