@@ -430,8 +430,10 @@ class Menu:
     def __init__(self, link, cell, model=None, out=None, slicer="builtin", mode="concurrent",
                  seam="straight", arms=None, scale=1.0, input=input, output=functools.partial(print, flush=True),
                  error=None, clock=time.monotonic, timeout=None, ack_timeout=DEFAULT_ACK_TIMEOUT_S,
-                 poll_period=0.1, error_grace=1.0, typed=None, speed=None):
+                 poll_period=0.1, error_grace=1.0, typed=None, speed=None, support=True):
         self.link, self.cell = link, cell
+        #: support under overhangs (--support on|off; the built-in slicer's, passed to prusa-slicer)
+        self.support = support
         #: the clock's pace, simulated s per wall s (None: max, or a real cell): the default timeout
         self.speed = speed
         self.model, self.out = model, out
@@ -570,7 +572,9 @@ class Menu:
         self.say("slicing %s%s (cell %s, %s slicer, %s mode) ..." % (
             path, "" if scale == 1.0 else " at scale %g" % scale, self.cell.name, slicer.backend, self.mode))
         t0 = time.monotonic()
+        from ambots.slicer import SliceSettings
         job = run_job(path, self.cell, self.arms, slicer=slicer.backend, mode=self.mode, seam=self.seam,
+                      settings=SliceSettings(support=self.support),
                       scale=scale)
         out = self.out or os.path.join("out", os.path.splitext(os.path.basename(path))[0] or "model")
         summary = write_job(job, out)
@@ -819,6 +823,9 @@ def build_parser(prog="front_end"):
     p.add_argument("--seam", choices=("straight", "interlock", "overlap"), default="straight",
                    help="where two arms' parts meet: straight (a plane) or interlock (= overlap: the boundary "
                         "alternates across the plane layer by layer)")
+    p.add_argument("--support", choices=("on", "off"), default="on",
+                   help="support under overhangs steeper than 45 deg (default on; off: a warning names the layers "
+                        "with extrusion in mid-air)")
     p.add_argument("--arms", help="comma-separated arms to print with, e.g. ur10 (default: the planner chooses "
                                   "the fastest of the cell's arms together and each arm alone)")
     p.add_argument("--out", help="output folder of the programs (default: out/<model stem>)")
@@ -844,6 +851,6 @@ def menu_from_args(args, link, cell, **kw):
     # the same G-code on every machine unless --slicer says otherwise
     slicer = args.slicer or ("builtin" if args.print_job else "auto")
     return Menu(link, cell, model=args.model, out=args.out, slicer=slicer, mode=args.mode,
-                seam=getattr(args, "seam", "straight"), arms=arms,
+                seam=getattr(args, "seam", "straight"), support=getattr(args, "support", "on") == "on", arms=arms,
                 scale=args.scale,
                 timeout=None if args.print_job else args.timeout, **kw)

@@ -152,7 +152,8 @@ class Job:
             from ambots.overhang import unsupported_extrusion
             from ambots.slicer import SliceSettings
             settings = self.settings or SliceSettings()
-            out = unsupported_extrusion(self.events().values(), bead_width_mm=settings.bead_width_mm)
+            out = unsupported_extrusion(self.events().values(), bead_width_mm=settings.bead_width_mm,
+                                        layer_height_mm=settings.layer_height_mm)
             out["support"] = getattr(settings, "support", None)
             self._overhang = out
         return self._overhang

@@ -5,8 +5,12 @@ how much of a print is in mid-air, from the toolpath alone (whatever
 slicer wrote it, with or without support), by the rule of issue
 "Printable":
 
-* the extrusions are grouped by height (the layers of all the G-code given,
-  e.g. every arm's program of one job, in one frame);
+* the extrusions are grouped into layers: slabs of the nominal layer
+  height ``h`` (the most common step between extruding heights), layer
+  ``k`` holding the heights in ((k - 1) h, k h] -- so a support layer a
+  slicer lowers under an overhang (a z gap) or lays at its own height
+  stays in its slab; all the G-code given is grouped together (every arm's
+  program of one job, in one frame);
 * a point of an extrusion on a layer is **supported** when some extrusion of
   the layer below (any program's) passes within one bead width of it; the
   lowest layer lies on the bed;
@@ -113,19 +117,22 @@ def _bridged(supported, weights, path_id, bridge_max_mm):
 
 
 def unsupported_extrusion(programs: Iterable, bead_width_mm=DEFAULT_BEAD_WIDTH_MM,
-                          bridge_max_mm=DEFAULT_BRIDGE_MAX_MM, step_mm=0.2):
+                          bridge_max_mm=DEFAULT_BRIDGE_MAX_MM, step_mm=0.2, layer_height_mm=None):
     """How much extrusion has nothing under it, by the rule of the module doc.
 
     ``programs``: iterables of G-code events (:func:`ambots.gcode.read_gcode`
     or :func:`~ambots.gcode.parse_gcode_text`), one per program, all in one
     frame (a job's programs together: a bead may rest on another arm's).
+    ``layer_height_mm``: the slabs' height (None: :func:`nominal_layer_height`
+    of the G-code).
 
     Returns a dict: ``extruded_mm`` (extruding path length), ``unsupported_mm``,
     ``unsupported_share`` (0..1; 0 if nothing is extruded), ``bridged_mm``
-    (unsupported but counted as bridges), ``layers`` (number of extruding
-    heights), ``unsupported_layers``: [{``layer`` (1 = lowest extruding
-    height), ``z_mm``, ``unsupported_mm``}] for every layer with some, and
-    the rule's figures ``bead_width_mm``, ``bridge_max_mm``.
+    (unsupported but counted as bridges), ``layers`` (number of layers that
+    extrude), ``unsupported_layers``: [{``layer`` (1 = the lowest that
+    extrudes), ``z_mm`` (its top height), ``unsupported_mm``}] for every layer
+    with some, and the rule's figures ``bead_width_mm``, ``bridge_max_mm``,
+    ``layer_height_mm`` (the nominal ``h``).
     """
     import shapely
 
@@ -134,17 +141,14 @@ def unsupported_extrusion(programs: Iterable, bead_width_mm=DEFAULT_BEAD_WIDTH_M
     paths = [p for events in programs for p in _paths(events)]
     result = {"extruded_mm": 0.0, "unsupported_mm": 0.0, "unsupported_share": 0.0, "bridged_mm": 0.0,
               "layers": 0, "unsupported_layers": [], "bead_width_mm": bead_width_mm,
-              "bridge_max_mm": bridge_max_mm}
+              "bridge_max_mm": bridge_max_mm, "layer_height_mm": None}
     if not paths:
         return result
     z = np.array([p[0][0][2] for p in paths])
-    order = np.argsort(z, kind="stable")
-    # layer heights: sorted z, a new layer wherever z steps by more than the tolerance
-    zs = z[order]
-    new = np.concatenate([[True], np.diff(zs) > _Z_TOL])
-    layer_of = np.empty(len(paths), int)
-    layer_of[order] = np.cumsum(new) - 1
-    heights = zs[new]
+    h = float(layer_height_mm) if layer_height_mm else nominal_layer_height(z)
+    slab = np.ceil(z / h - _Z_TOL / h).astype(int)
+    slabs, layer_of = np.unique(slab, return_inverse=True)
+    heights = np.array([z[layer_of == k].max() for k in range(len(slabs))])
     by_layer: Dict[int, List[int]] = {}
     for i, k in enumerate(layer_of):
         by_layer.setdefault(int(k), []).append(i)
@@ -176,8 +180,21 @@ def unsupported_extrusion(programs: Iterable, bead_width_mm=DEFAULT_BEAD_WIDTH_M
         shapely.prepare(below)
     result.update(extruded_mm=round(total, 3), unsupported_mm=round(unsupported, 3),
                   unsupported_share=unsupported / total if total > 0 else 0.0,
-                  bridged_mm=round(bridged, 3), layers=len(heights), unsupported_layers=per_layer)
+                  bridged_mm=round(bridged, 3), layers=len(heights), unsupported_layers=per_layer,
+                  layer_height_mm=h)
     return result
+
+
+def nominal_layer_height(z):
+    """The most common step between distinct extruding heights ``z`` (mm),
+    to 0.001 mm; the lowest height if there is one only."""
+    zs = np.unique(np.round(np.asarray(z, float), 3))
+    steps = np.round(np.diff(zs), 3)
+    steps = steps[steps > _Z_TOL]
+    if not len(steps):
+        return float(zs[0]) if len(zs) and zs[0] > _Z_TOL else 0.2
+    values, counts = np.unique(steps, return_counts=True)
+    return float(values[counts == counts.max()].max())        # a tie: the larger step
 
 
 def layer_ranges(layers, limit=12):

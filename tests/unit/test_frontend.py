@@ -488,6 +488,9 @@ def test_flags(cell):
     assert args.print_job and args.model is None and menu_from_args(args, FakeLink(), cell).timeout is None
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--mode", "parallel"])
+    menu = menu_from_args(build_parser().parse_args(["--support", "off", "--seam", "interlock"]), FakeLink(), cell)
+    assert (menu.support, menu.seam) == (False, "interlock")
+    assert menu_from_args(build_parser().parse_args([]), FakeLink(), cell).support is True
 
 
 def test_the_default_timeout_follows_the_clocks_pace(cell):

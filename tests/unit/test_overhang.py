@@ -87,6 +87,22 @@ def test_a_retraction_and_prime_inside_a_path_keep_it_one_path_for_the_bridge_ru
     assert r["unsupported_mm"] == 0.0 and r["bridged_mm"] > 0
 
 
+def test_a_support_layer_lowered_under_an_overhang_stays_in_its_layer():
+    """A z gap: the support's top layer is laid 0.1 mm lower than the part's
+    layer beside it.  Both are one layer (the 0.2 mm slab), so the part's
+    next layer rests on the part and the overhang on the support."""
+    stem, support, top = [(0, 0), (5, 0)], [(5, 0.7), (20, 0.7)], [(0, 0.35), (20, 0.35)]
+    below = [(0.2 * k, [stem, support]) for k in range(1, 6)]                # five layers of both, to z = 1.0
+    text = gcode(*below, (1.2, [stem]), (1.1, [support]), (1.4, [top]))
+    r = measure(text)
+    assert r["layer_height_mm"] == pytest.approx(0.2)                    # the most common step
+    assert r["layers"] == 7 and r["unsupported_mm"] == 0.0
+    assert measure(text, layer_height_mm=0.2)["unsupported_mm"] == 0.0
+    # without the support the line rests on the stem up to one bead width from it, then on nothing
+    bare = measure(gcode(*[(0.2 * k, [stem]) for k in range(1, 7)], (1.4, [top])))
+    assert bare["unsupported_mm"] == pytest.approx(20 - 5 - math.sqrt(W ** 2 - 0.35 ** 2), abs=0.2)
+
+
 def test_layer_ranges():
     assert layer_ranges([9, 3, 4, 5]) == "3-5, 9"
     assert layer_ranges(range(1, 40, 2), limit=3) == "1, 3, 5, ... (17 more)"
@@ -117,10 +133,10 @@ def test_slice_reports_the_T_bars_first_layer_as_unsupported(t_shape, tmp_path):
     area's beads: at least the two overhangs' perimeters (2 x 2 loops of about
     2 x (25 - 2 W) + 2 x (10 - 2 W) mm, less the part within a bead width of the stem)."""
     out = tmp_path / "job"
-    res = subprocess.run([sys.executable, "-m", "ambots", "slice", str(t_shape), "--arms", "ur10",
+    res = subprocess.run([sys.executable, "-m", "ambots", "slice", str(t_shape), "--arms", "ur10", "--support", "off",
                           "--out", str(out)], capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr
-    assert "warning:" in res.stdout and "on layer 51 (z 10.20 mm)" in res.stdout, res.stdout
+    assert "warning:" in res.stdout and "on layer 51 (z 10.20 mm); support is off" in res.stdout, res.stdout
     job = json.loads((out / "job.json").read_text())
     o = job["overhang"]
     assert [l["layer"] for l in o["unsupported_layers"]] == [51]
@@ -136,6 +152,13 @@ def test_slice_reports_the_T_bars_first_layer_as_unsupported(t_shape, tmp_path):
     per_file = json.loads(info.stdout)
     assert per_file["unsupported_mm"] == pytest.approx(o["unsupported_mm"], rel=1e-6)
     assert [l["layer"] for l in per_file["unsupported_layers"]] == [51]
+    # with support (the default) the bar rests on it: no warning, the share by this rule within 0.1 %
+    res = subprocess.run([sys.executable, "-m", "ambots", "slice", str(t_shape), "--arms", "ur10",
+                          "--out", str(tmp_path / "supported")], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    assert "warning:" not in res.stdout, res.stdout
+    o = json.loads((tmp_path / "supported" / "job.json").read_text())["overhang"]
+    assert o["support"] is True and o["unsupported_share"] <= 0.001, o
 
 
 def test_the_demo_block_has_nothing_unsupported(tmp_path):
