@@ -17,7 +17,9 @@ slicer wrote it, with or without support), by the rule of issue
 * a **bridge** is allowed: a stretch of one extrusion path (consecutive
   extruding moves, end to start) that is unsupported over at most
   ``bridge_max_mm`` and has supported points at both ends counts as
-  supported;
+  supported; the pieces of one line that coordination cut (where two
+  arms' or two bands' work meets: one ends where the next begins, and no
+  third path ends there) are one path for this;
 * the **unsupported share** is the unsupported extruded length over the
   whole extruded length.
 
@@ -162,9 +164,9 @@ def unsupported_extrusion(programs: Iterable, bead_width_mm=DEFAULT_BEAD_WIDTH_M
             for _, w in samples:
                 total += float(w.sum())
         else:
+            samples, pid = _chained(members, samples)
             pts = np.concatenate([s for s, _ in samples])
             w = np.concatenate([w for _, w in samples])
-            pid = np.repeat(np.arange(len(samples)), [len(w) for _, w in samples])
             hit = shapely.contains_xy(below, pts[:, 0], pts[:, 1])
             ok = _bridged(hit, w, pid, bridge_max_mm)
             total += float(w.sum())
@@ -183,6 +185,50 @@ def unsupported_extrusion(programs: Iterable, bead_width_mm=DEFAULT_BEAD_WIDTH_M
                   bridged_mm=round(bridged, 3), layers=len(heights), unsupported_layers=per_layer,
                   layer_height_mm=h)
     return result
+
+
+def _chained(members, samples):
+    """One layer's paths joined where two of them meet end to end and no
+    third path ends there: the pieces of one line that coordination cut
+    (where two arms' or two bands' work meets) are one path again for the
+    bridge rule.  Returns the samples in chain order (a piece walked
+    backwards has its samples reversed) and the chain id of every sample."""
+    ends = {}
+    key = lambda xy: (round(xy[0], 3), round(xy[1], 3))
+    heads, tails = [], []
+    for i, p in enumerate(members):
+        a, b = key(p[0][0]), key(p[-1][1])
+        heads.append(a)
+        tails.append(b)
+        if a != b:                                  # a closed loop is a chain of its own
+            ends.setdefault(a, []).append((i, 0))
+            ends.setdefault(b, []).append((i, 1))
+    link = {}                                       # (path, end) -> (other path, its end)
+    for at in ends.values():
+        if len(at) == 2 and at[0][0] != at[1][0]:
+            link[at[0]], link[at[1]] = at[1], at[0]
+    seen = np.zeros(len(members), bool)
+    out, pid = [], []
+    # chains from a free end first, then what is left (closed rings of pieces)
+    order = [i for i in range(len(members)) if (i, 0) not in link or (i, 1) not in link] + list(range(len(members)))
+    for start in order:
+        if seen[start]:
+            continue
+        chain = 0 if not pid else pid[-1][0] + 1
+        i, forward = start, (start, 0) not in link or (start, 1) in link and (start, 0) not in link
+        if (start, 0) in link and (start, 1) not in link:
+            forward = False                          # the free end is the tail: walk it backwards
+        while i is not None and not seen[i]:
+            seen[i] = True
+            s, w = samples[i]
+            out.append((s, w) if forward else (s[::-1], w[::-1]))
+            pid.append((chain, len(w)))
+            nxt = link.get((i, 1 if forward else 0))
+            if nxt is None:
+                break
+            i, forward = nxt[0], nxt[1] == 0
+    ids = np.repeat([c for c, _ in pid], [n for _, n in pid])
+    return out, ids
 
 
 def nominal_layer_height(z):

@@ -103,6 +103,23 @@ def test_a_support_layer_lowered_under_an_overhang_stays_in_its_layer():
     assert bare["unsupported_mm"] == pytest.approx(20 - 5 - math.sqrt(W ** 2 - 0.35 ** 2), abs=0.2)
 
 
+def test_a_line_cut_into_pieces_is_one_path_for_the_bridge_rule():
+    """Coordination cuts lines where two arms' (or two bands') work meets; the
+    pieces meet end to end, are printed apart (here one of them backwards,
+    by the other program) and still span the gap as one bridge."""
+    pillars = [[(0, 0), (5, 0)], [(13, 0), (18, 0)]]
+    whole = measure(gcode((0.2, pillars), (0.4, [[(0, 0), (18, 0)]])))
+    cut = measure(gcode((0.2, pillars), (0.4, [[(0, 0), (9, 0)], [(0, 5), (18, 5)]])),
+                  gcode((0.4, [[(18, 0), (9, 0)]])))
+    assert whole["unsupported_mm"] == 0.0 and cut["bridged_mm"] == pytest.approx(whole["bridged_mm"], abs=0.3)
+    # the line at y = 5 lies over nothing: it is counted, joined or not
+    assert cut["unsupported_mm"] == pytest.approx(18.0, abs=1e-6)
+    # a gap too long to bridge stays unsupported when cut as well
+    far = [[(0, 0), (5, 0)], [(25, 0), (30, 0)]]
+    long_cut = measure(gcode((0.2, far), (0.4, [[(0, 0), (15, 0)], [(15, 0), (30, 0)]])))
+    assert long_cut["unsupported_mm"] == pytest.approx(20 - 2 * W, abs=0.3)
+
+
 def test_layer_ranges():
     assert layer_ranges([9, 3, 4, 5]) == "3-5, 9"
     assert layer_ranges(range(1, 40, 2), limit=3) == "1, 3, 5, ... (17 more)"
