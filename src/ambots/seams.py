@@ -345,7 +345,9 @@ def lap_order(by_arm, planes, reach_mm, z_tops):
                 for (x, y), (nn, oo) in planes.items():      # at this seam, not where the plane runs elsewhere
                     if x == arm and y not in (a, b):
                         near &= mid @ np.asarray(nn, dtype=float) - oo >= -reach_mm
-                layer = np.argmin(np.abs(p1[:, 2][:, None] - z_tops[None]), axis=1)
+                # the slicer's layer k holds z in (top k-1, top k]: a support layer laid low under an
+                # overhang (its z gap) is still its layer, not the one below
+                layer = np.minimum(np.searchsorted(z_tops, p1[:, 2] - 1e-3), len(z_tops) - 1)
                 for k in np.unique(layer[near]):
                     sel = near & (layer == k)
                     first[arm, k], last[arm, k] = float(t[sel].min()), float(t[sel].max())

@@ -256,3 +256,8 @@ def test_lap_order_counts_a_layer_begun_before_the_neighbours_layer_below():
         ur10 = arm([(5, 0.5, 0.2, 2.0), (5, -0.4, 0.4, t_ur10_l1), (40, 50, 0.2, 9.0)])
         got = lap_order({"kinova": kinova, "ur10": ur10}, planes, 1.0, [0.2, 0.4])
         assert got == {"kinova/ur10": {"layers": 2, "early": early}}
+    # a support layer laid 0.1 mm low (z 0.3, the z gap under an overhang) is layer 1, not layer 0:
+    # laid at t = 2.5, after the Kinova's layer 0 (done at 1), it is in order (nearest-top gave "early")
+    ur10 = arm([(5, 0.5, 0.2, 2.0), (5, -0.4, 0.3, 2.5)])
+    assert lap_order({"kinova": kinova, "ur10": ur10}, planes, 1.0, [0.2, 0.4]) == \
+        {"kinova/ur10": {"layers": 2, "early": 0}}
