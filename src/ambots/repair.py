@@ -137,6 +137,12 @@ def close_holes(mesh, name, report):
         report.open_edges_after = report.open_edges_before
         return mesh.copy()               # validate_mesh refuses it, with the open-edge count
     report.open_edges_after = open_edges(closed)
+    pinched = nonmanifold_edges(closed)
+    if pinched:                          # holes that touch each other: MeshFix's fill is not a surface
+        report.notes.append("MeshFix's fill left %d edges shared by more than two triangles" % pinched)
+        raise MeshError("%s: not a closed volume: %d open edges; closing them gives %d edges shared by more "
+                        "than two triangles (holes that touch each other at a corner or an edge): not "
+                        "repaired" % (name, report.open_edges_before, pinched))
     with np.errstate(divide="ignore", invalid="ignore"):
         if report.open_edges_after == 0 and closed.volume < 0:
             closed.invert()                  # and the patch with it: it is part of the outward mesh
@@ -214,6 +220,15 @@ def _fill(mesh):
     return (closed, trimesh.Trimesh(triangles.reshape(-1, 3), np.arange(3 * len(triangles)).reshape(-1, 3),
                                     process=False),
             trimesh.Trimesh(mesh.vertices, mesh.faces[region[removed]], process=False), n_filled)
+
+
+def nonmanifold_edges(mesh):
+    """Number of edges used by more than two triangles."""
+    edges = np.sort(mesh.edges_sorted, axis=1) if len(mesh.faces) else np.zeros((0, 2), int)
+    if not len(edges):
+        return 0
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return int((counts > 2).sum())
 
 
 def open_edges(mesh):

@@ -259,6 +259,25 @@ def test_holes_in_a_non_manifold_mesh_are_not_closed(tmp_path):
     assert "non-manifold edges" in str(info.value)
 
 
+
+def test_holes_that_touch_at_a_corner_are_refused_with_the_reason(tmp_path):
+    """Two triangles missing from a box that share one corner: one boundary
+    pinched at that corner.  MeshFix fills it with triangles whose edges
+    three triangles share; that is not a surface, and the model is refused
+    naming it (before, the message spoke of non-manifold edges the file
+    does not have)."""
+    box = trimesh.creation.box((40.0, 40.0, 40.0)).subdivide().subdivide()
+    F = box.faces
+    corner = next(k for k in range(1, len(F)) if len(set(F[k]) & set(F[0])) == 1)
+    faces = np.delete(F, [0, corner], axis=0)
+    assert len(trimesh.grouping.group_rows(np.sort(
+        trimesh.Trimesh(box.vertices, faces, process=False).edges, axis=1), require_count=1)) == 6
+    with pytest.raises(MeshError) as info:
+        load_model(save(tmp_path, "pinched.stl", box.vertices, faces))
+    text = str(info.value)
+    assert text.startswith("pinched.stl: not a closed volume: 6 open edges; closing them gives ") and \
+        "shared by more than two triangles (holes that touch each other" in text, text
+
 # ------------------------------------------------------ the must-show
 
 def test_a_holey_model_is_repaired_and_planned_by_both_arms_without_contact(tmp_path):
