@@ -26,3 +26,13 @@ def hole_through():
 
 
 MODELS = {"cube": cube, "cylinder": cylinder, "overhang": overhang, "hole": hole_through}
+
+
+def sections(mesh, z):
+    """shapely (Multi)Polygons of the mesh's cross-sections at heights ``z`` (mm)."""
+    import shapely
+    out = []
+    for path in mesh.section_multiplane([0, 0, 0], [0, 0, 1], list(z)):
+        polys = [] if path is None else path.polygons_full
+        out.append(shapely.union_all(polys) if polys else shapely.Polygon())
+    return out

@@ -24,7 +24,7 @@ SETTINGS = SliceSettings(support=False)
 W = SETTINGS.bead_width_mm
 
 
-from shapes import MODELS, cube, overhang  # tests/unit/shapes.py
+from shapes import MODELS, cube, overhang, sections  # tests/unit/shapes.py
 NAMES = sorted(MODELS)
 
 
@@ -68,15 +68,6 @@ def gcode_of(name, backend):
     if key not in _cache:
         _cache[key] = Toolpath(slice_mesh(placed(name), SETTINGS, backend=backend))
     return _cache[key]
-
-
-def sections(mesh, z):
-    """shapely (Multi)Polygons of the mesh's cross-sections at heights z."""
-    out = []
-    for path in mesh.section_multiplane([0, 0, 0], [0, 0, 1], list(z)):
-        polys = [] if path is None else path.polygons_full
-        out.append(shapely.union_all(polys) if polys else shapely.Polygon())
-    return out
 
 
 def layer_z(settings, mesh):

@@ -14,7 +14,7 @@ from ambots.mesh import from_manifold, load_model, place_on_bed
 from ambots.slicer import PrusaSlicer, SliceSettings, slice_mesh
 from ambots.support import SUPPORT, SUPPORT_INTERFACE
 
-from shapes import overhang  # tests/unit/shapes.py
+from shapes import overhang, sections  # tests/unit/shapes.py
 from unsupported_rule import extrusion_paths, unsupported_share
 
 ON, OFF = SliceSettings(), SliceSettings(support=False)
@@ -67,15 +67,6 @@ def feature_points(gcode, features):
         if current in features and float(words.get("E", 0)) > 0 and ("X" in words or "Y" in words):
             out.append((x, y, z))
     return np.array(out).reshape(-1, 3)
-
-
-def sections(mesh, z):
-    """shapely cross-sections of ``mesh`` at heights ``z``."""
-    out = []
-    for path in mesh.section_multiplane([0, 0, 0], [0, 0, 1], list(z)):
-        polys = [] if path is None else path.polygons_full
-        out.append(shapely.union_all(polys) if polys else shapely.Polygon())
-    return out
 
 
 # ------------------------------------------------------------ mid-air share
