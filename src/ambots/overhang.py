@@ -195,11 +195,8 @@ def _chained(members, samples):
     backwards has its samples reversed) and the chain id of every sample."""
     ends = {}
     key = lambda xy: (round(xy[0], 3), round(xy[1], 3))
-    heads, tails = [], []
     for i, p in enumerate(members):
         a, b = key(p[0][0]), key(p[-1][1])
-        heads.append(a)
-        tails.append(b)
         if a != b:                                  # a closed loop is a chain of its own
             ends.setdefault(a, []).append((i, 0))
             ends.setdefault(b, []).append((i, 1))
@@ -215,9 +212,8 @@ def _chained(members, samples):
         if seen[start]:
             continue
         chain = 0 if not pid else pid[-1][0] + 1
-        i, forward = start, (start, 0) not in link or (start, 1) in link and (start, 0) not in link
-        if (start, 0) in link and (start, 1) not in link:
-            forward = False                          # the free end is the tail: walk it backwards
+        # from a free head forwards, from a free tail backwards (a ring: either way)
+        i, forward = start, not ((start, 0) in link and (start, 1) not in link)
         while i is not None and not seen[i]:
             seen[i] = True
             s, w = samples[i]
