@@ -24,8 +24,11 @@ of time-stamped joint waypoints, steps a real controller could follow:
 4. a move that does not start where the nozzle is (the first move of a
    program, or after a park) is a joint-space move to the end of that move,
    checked against obstacles and planned around them with OMPL when a
-   straight joint move is blocked (:mod:`ambots.planning`); travel moves
-   that a caller-supplied obstacle check refuses are re-planned the same way.
+   straight joint move is blocked (:mod:`ambots.planning`), against a
+   caller-supplied obstacle check (``is_valid``) when there is one.  The
+   G-code's own moves (extrusion and travel) follow the program's path and
+   are not checked here: their safety from other arms comes from the
+   coordinator's barriers (:mod:`ambots.coordinate`).
 
 Units: metres, radians and seconds inside; mm only where G-code is read
 (:mod:`ambots.units`).  World frame = the cell's; bed frame = G-code frame.

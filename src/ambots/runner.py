@@ -129,6 +129,10 @@ class ArmRunner:
         #: optional ``f(block, t0, k)``: told of every block the arm starts (k = 0) or resumes (at
         #: waypoint k) at simulated time ``t0`` (a driver streaming the motion to a controller)
         self.on_motion = None
+        #: A4 while moving (simulated): the brake the arm is still on after its block was dropped,
+        #: ``(motion, t0, tau_from, tau_rest)`` in block times of ``motion`` (started at ``t0``);
+        #: kept out of :meth:`_clear` (a chunk loaded meanwhile does not stop the arm)
+        self.coast = None
         self._clear()
 
     # ----------------------------------------------------------- program
@@ -164,6 +168,9 @@ class ArmRunner:
         """Joint vector (n,) at ``now`` (default: the runner's clock): while
         moving, the block's commanded motion (the one timing law) at that
         instant, never past the next waypoint the runner has not reached."""
+        c = self.coast
+        if c is not None and now is not None and now < c[1] + c[3]:
+            return c[0].eval(np.array([max(now - c[1], c[2])]))[0][0]
         b = self.block
         if b is None or now is None or self.state not in (ArmState.PRINTING,) or self.k + 1 >= len(b.t):
             return self.q.copy()
@@ -244,6 +251,7 @@ class ArmRunner:
             self._load(msg)
         elif kind is ClearChunk:
             was = self.state
+            self._coast_out(now)
             self._clear()
             self.state = ArmState.IDLE
             if was in (ArmState.PRINTING, ArmState.WAITING, ArmState.PAUSED):
@@ -256,7 +264,7 @@ class ArmRunner:
                 if self.state is ArmState.DONE:        # run the same chunk again from the top
                     self.idx, self.done_line, self.block = 0, 0, None
                 self.state = ArmState.PRINTING
-                self.clock = now
+                self.clock = max(now, self.rest_at())
                 self._report()
             elif self.state is ArmState.PAUSED:
                 self._resume(now)
@@ -304,6 +312,50 @@ class ArmRunner:
         self.pause_at = (b, stop_at_line_end(b, max(H, float(b.t[self.k])), self.planner.timing,
                                              line_ends_only=not self.stop_requested))
 
+    def _coast_out(self, now):
+        """A4 while the simulated arm moves: it brakes to rest as soon as the
+        acceleration limits allow after ``now``, the extruder stopped there
+        (:func:`ambots.trajectory.stop_now`, as a streaming driver's abort
+        brakes a real arm: :meth:`ambots.trajectory.Stream.abort`), and goes
+        on moving on that brake while the runner is already idle: its joints
+        (:meth:`joints`) and trace follow the brake, and the next motion
+        (A1, A7) starts where and when the arm has come to rest
+        (:meth:`rest_at`).  The extrusion between the last waypoint reached
+        and ``now`` is not recorded as a bead (at most one waypoint interval)."""
+        b = self.block
+        if b is None or b.motion is None or self.on_motion is not None or self.state is not ArmState.PRINTING:
+            return
+        from ambots.trajectory import stop_now
+        H = max(max(now, self.clock) - self.block_t0, float(b.t[self.k]))
+        T = stop_now(b.motion, H, self.planner.timing.amax)
+        self.coast = (b.motion, self.block_t0, float(b.t[self.k]), float(T))
+        self.q = b.motion.eval(np.array([T]))[0][0]
+        self._coast_run(self.clock)
+
+    def rest_at(self):
+        """Simulated time at which the arm comes to rest from a brake after
+        A4 (:meth:`_coast_out`); -inf when it is not braking."""
+        return self.coast[1] + self.coast[3] if self.coast is not None else -np.inf
+
+    def _coast_run(self, now):
+        """Record the brake after A4 up to simulated time ``now`` (trace
+        knots every :data:`BRAKE_KNOT_S` s); forget it once at rest."""
+        m, t0, tau, T = self.coast
+        end = min(now - t0, T)
+        if end > tau + 1e-9 and self.record:
+            ts = np.union1d(np.arange(tau, end, BRAKE_KNOT_S), [tau, end])
+            q, v = m.eval(ts)[:2]
+            if t0 + ts[0] <= self._trace_end:
+                ts, q, v = ts[1:], q[1:], v[1:]
+            self.trace_t.append(t0 + ts)
+            self.trace_q.append(q)
+            self.trace_v.append(v)
+            self._trace_end = t0 + end
+        if end >= T - 1e-12:
+            self.coast = None
+        else:
+            self.coast = (m, t0, max(tau, end), T)
+
     def _resume(self, now):
         self.pause_requested = self.stop_requested = False
         self.state = ArmState.WAITING if self.wait is not None else ArmState.PRINTING
@@ -345,7 +397,7 @@ class ArmRunner:
         self.after_block = self.state
         self._block_src = ["manual", float(msg.x), float(msg.y), float(msg.z)]
         self.state = ArmState.PRINTING
-        self._begin(block, now)
+        self._begin(block, max(now, self.rest_at()))
 
     # ----------------------------------------------------------- checkpoints
     def checkpoint(self):
@@ -436,6 +488,8 @@ class ArmRunner:
     def advance(self, now):
         """Run until simulated time ``now`` (s) or until the arm stops
         (waits, pauses, finishes or fails)."""
+        if self.coast is not None:
+            self._coast_run(now)
         while True:
             if self.state is ArmState.WAITING:
                 wake = self.release_time()

@@ -733,3 +733,44 @@ def test_stop_brakes_at_once_mid_line_and_resume_gives_the_same_deposit(referenc
     assert set(got) == set(want)
     for line in got:
         assert got[line] == pytest.approx(want[line], abs=1e-9)
+
+
+def test_clear_chunk_while_moving_brakes_within_the_limits_and_the_next_run_starts_at_rest(arm, cell, planner):
+    """A4 in the middle of a line (simulated arm): idle at once, but the arm
+    brakes as a real one would, its speed continuous and its acceleration
+    within the profile's limits (finite differences of the joints it shows,
+    not the brake's own figures); a new chunk then starts from where and
+    when it came to rest."""
+    r = new_runner(arm, cell, planner)
+    load_and_start(r)
+    t = 0.0
+    while r.block is None or not r.block.extrude[min(r.k + 1, len(r.block.t) - 1)] or t < 2.0:
+        t += 0.05
+        r.advance(t)
+    h = 1e-3
+    v_before = (r.joints(t) - r.joints(t - h)) / h
+    tip = r.planner.tip_world(np.array([r.joints(t - h), r.joints(t)]))
+    assert np.linalg.norm(tip[1] - tip[0]) / h > 0.01     # the nozzle moves (> 10 mm/s) when the A4 comes
+    r.handle(ClearChunk(r.id), now=t)
+    assert r.state is ArmState.IDLE and r.chunk is None
+    rest = r.rest_at()
+    assert t < rest < t + 2.0
+    v_after = (r.joints(t + h) - r.joints(t)) / h
+    assert np.allclose(v_after, v_before, atol=0.02 * np.abs(v_before).max() + 1e-3)   # no jump in speed
+    ts = np.arange(t, rest + 0.05, 0.002)
+    Q = np.array([r.joints(x) for x in ts])
+    a = np.diff(Q, 2, axis=0) / 0.002 ** 2
+    amax = np.asarray(r.planner.timing.amax, dtype=float)
+    assert (np.abs(a) <= 1.05 * amax + 1e-6).all()
+    assert np.allclose(Q[-1], r.q) and np.allclose(Q[-2], Q[-1])           # at rest at its end
+    assert np.linalg.norm(Q[-1] - Q[0]) > 1e-4                              # it did coast on
+    # a new chunk at once: accepted, and its motion starts from the rest pose, after the brake
+    r.handle(LoadChunk(r.id, PROGRAM, chunk_id=2), now=t)
+    r.handle(Start(r.id), now=t)
+    assert r.state is ArmState.PRINTING and r.clock >= rest
+    r.advance(rest + 0.5)
+    assert r.block is None or r.block_t0 >= rest - 1e-9
+    tt = np.concatenate(r.trace_t)
+    assert (np.diff(tt) > 0).all()                                          # one timeline, in order
+    run(r)
+    assert r.state is ArmState.DONE

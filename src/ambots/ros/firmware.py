@@ -41,9 +41,11 @@ hub, publishing joint states, the deposit and run statistics.
   with the state, line, layer, percent, the runner's :class:`RunStats` and
   what the arm knows of the others, whenever its state or another arm's
   state changes.
-* Travel and joint moves are planned around obstacles: the bed, and with a
-  real arm (``driver`` trajectory) the other arms of the cell at their
-  latest joint states (subscribed), with ``clearance_mm`` of margin
+* Joint moves (to a program's first point, after a park, A7) are planned
+  around obstacles: the bed, and with a real arm (``driver`` trajectory)
+  the other arms of the cell at their latest joint states (subscribed),
+  with ``clearance_mm`` of margin; the G-code's own moves follow the
+  program (the coordinator's barriers keep them apart)
   (:mod:`ambots.collision`).  A move that only the other arms block waits
   for them (:class:`~ambots.runner.ArmRunner`); the wait is logged once,
   with what the refused pose is too close to (obstacle, clearance in mm,
