@@ -19,7 +19,9 @@ import sys
 
 import manifold3d as m3
 
+from ambots.gcode import parse_gcode_text
 from ambots.mesh import from_manifold, place_on_bed
+from ambots.overhang import unsupported_extrusion
 from ambots.slicer import PrusaSlicer, SliceSettings, slice_mesh
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "unit"))
@@ -53,10 +55,12 @@ def main():
         tp, gp = best_time(lambda: slice_mesh(mesh, settings, backend="prusa"), REPEAT)
         gs = PrusaSlicer(settings, extra_args=synced).slice(mesh)
         off = slice_mesh(mesh, SliceSettings(support=False), backend="builtin")
+        window = unsupported_extrusion([parse_gcode_text(gp)])["unsupported_share"]
         print("support %s: builtin %.3f s, prusa %.3f s, ratio builtin/prusa = %.2f; unsupported share "
-              "builtin %.3f %% (no support: %.3f %%), prusa %.3f %% (contact 0, synchronized: %.3f %%)"
+              "builtin %.3f %% (no support: %.3f %%), prusa %.3f %% (ambots.overhang's height window: %.3f %%; "
+              "contact 0, synchronized: %.3f %%)"
               % (name, tb, tp, tb / tp, 100 * unsupported_share(gb)[0], 100 * unsupported_share(off)[0],
-                 100 * unsupported_share(gp)[0], 100 * unsupported_share(gs)[0]))
+                 100 * unsupported_share(gp)[0], 100 * window, 100 * unsupported_share(gs)[0]))
 
 
 if __name__ == "__main__":

@@ -103,6 +103,25 @@ def test_a_support_layer_lowered_under_an_overhang_stays_in_its_layer():
     assert bare["unsupported_mm"] == pytest.approx(20 - 5 - math.sqrt(W ** 2 - 0.35 ** 2), abs=0.2)
 
 
+def test_support_laid_at_heights_of_its_own_carries_what_lies_on_it():
+    """PrusaSlicer lays support in layers of its own height when they are not
+    synchronized with the object's (here 0.3 mm against the object's
+    0.2 mm).  Each support bead lies 0.3 mm over the one below at the same
+    place and the overhang 0.1-0.2 mm over the top one: nothing is in mid-air,
+    though some 0.2 mm slabs hold no support at all."""
+    stem, support, top = [(0, 0), (5, 0)], [(5, 0.7), (20, 0.7)], [(0, 0.35), (20, 0.35)]
+    part = [(round(0.2 * k, 3), [stem]) for k in range(1, 10)]                   # to z = 1.8
+    sup = [(round(0.2 + 0.3 * k, 3), [support]) for k in range(6)]               # 0.2, 0.5, ... 1.7
+    text = gcode(*sorted(part + sup, key=lambda l: l[0]), (2.0, [stem, top]))
+    r = measure(text)
+    assert r["layer_height_mm"] == pytest.approx(0.2)
+    assert r["unsupported_mm"] == 0.0, r["unsupported_layers"]
+    # the same support 0.4 mm apart (two object layers) leaves every support bead but the lowest in mid-air
+    sparse = [(round(0.2 + 0.4 * k, 3), [support]) for k in range(5)]          # 0.2, 0.6, ... 1.8
+    r = measure(gcode(*sorted(part + sparse, key=lambda l: l[0]), (2.0, [stem, top])))
+    assert r["unsupported_mm"] == pytest.approx(4 * 15.0, abs=0.5)
+
+
 def test_a_line_cut_into_pieces_is_one_path_for_the_bridge_rule():
     """Coordination cuts lines where two arms' (or two bands') work meets; the
     pieces meet end to end, are printed apart (here one of them backwards,
