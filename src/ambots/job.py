@@ -105,6 +105,7 @@ class Job:
         events = self.events()
         out["overhang"] = self.overhang()
         out["repair"] = self.repair()
+        out["seams"] = self.seam_setup()
         for part in self.parts:
             name = part.arm.name
             if name not in self.programs:
@@ -118,6 +119,17 @@ class Job:
                 "stripped_lines": [{"line": l, "text": t} for l, t in self.programs[name].removed]}
         return out
 
+
+    def seam_setup(self, settings=None):
+        """What the seam figures are measured against
+        (:func:`ambots.seams.seam_setup`: planes, layers, bead width), with
+        the job's slice settings (or ``settings``); None for one part."""
+        from ambots.seams import seam_setup
+        from ambots.slicer import SliceSettings
+        if self.mesh is None or not self.parts:
+            return None
+        return seam_setup(self.parts, self.seam, settings or self.settings or SliceSettings(),
+                          float(self.mesh.bounds[1][2]))
 
     def repair(self):
         """The model's repair report (:meth:`ambots.repair.RepairReport.as_dict`;

@@ -301,9 +301,13 @@ def bonded_share(model, parts, deposit, bed_pose, z_tops, heights, bead_width, s
     live = [p for p in parts if not p.empty]
     if len(live) < 2:
         return {}
+    return _bonded(model, seam_planes(live), deposit, bed_pose, z_tops, heights, bead_width, step_mm)
+
+
+def _bonded(model, planes, deposit, bed_pose, z_tops, heights, bead_width, step_mm=0.2):
     beads = deposit_beads_mm(deposit, bed_pose)
     out = {}
-    for (a, b), (P, n) in seam_samples(model, seam_planes(live), z_tops, heights, step_mm).items():
+    for (a, b), (P, n) in seam_samples(model, planes, z_tops, heights, step_mm).items():
         if not len(P):
             continue
         # only the beads near the plane can straddle it
@@ -313,6 +317,72 @@ def bonded_share(model, parts, deposit, bed_pose, z_tops, heights, bead_width, s
         mask = bonded_mask(P, n, tuple(x[near] for x in beads), bead_width / 4.0)
         out["%s/%s" % (a, b)] = {"bonded_share": round(float(mask.mean()), 4), "samples": int(len(P))}
     return out
+
+
+def seam_setup(parts, seam, settings, z_max_mm):
+    """What a job's seam figures are measured against, as JSON (``job.json``'s
+    ``seams``, so that the live capture measures its deposit as ``plan``
+    does): the seam kind, the planes between the ``parts`` ({"a/b": {"normal",
+    "offset_mm"}} seen from a), the slicer's layer tops and thicknesses up
+    to ``z_max_mm`` (the model's top), the bead width and the lap band's
+    reach (the interlock's depth plus a bead).  None for fewer than two
+    parts with work."""
+    from ambots.coordinate.zones import seam_planes
+    from ambots.slicer import layer_heights
+    live = [p for p in parts if not p.empty]
+    if len(live) < 2:
+        return None
+    z_tops, heights = layer_heights(float(z_max_mm), settings)
+    return {"seam": seam,
+            "planes": {"%s/%s" % k: {"normal": [round(float(x), 12) for x in n], "offset_mm": float(o)}
+                       for k, (n, o) in seam_planes(live).items()},
+            "z_tops_mm": [float(z) for z in z_tops], "heights_mm": [float(h) for h in heights],
+            "bead_width_mm": float(settings.bead_width_mm),
+            "reach_mm": float(interlock_depth_mm(settings.bead_width_mm, settings.layer_height_mm)
+                              + settings.bead_width_mm)}
+
+
+def beads_in_bed_mm(by_arm, bed_pose):
+    """{arm: (p0, p1, t)} with p0, p1 (K, 3) in the world frame (m) -> the
+    same in the bed frame (mm), as :func:`lap_order` takes them."""
+    T = np.linalg.inv(np.asarray(bed_pose, dtype=float))
+    bed = lambda P: (np.asarray(P, dtype=float) @ T[:3, :3].T + T[:3, 3]) * 1e3
+    return {n: (bed(p0), bed(p1), np.asarray(t, dtype=float)) for n, (p0, p1, t) in by_arm.items()}
+
+
+def placed_model(job_dir, names):
+    """The placed model again (Manifold, bed frame mm), from the parts a job
+    folder holds (``<arm>.stl`` for the arms ``names``, written by
+    :func:`ambots.job.write_job`): their union (an interlock's parts
+    alternate across the seam; together they are the model)."""
+    import os
+
+    import trimesh
+
+    from ambots.mesh import to_manifold
+    model = None
+    for n in names:
+        m = to_manifold(trimesh.load(os.path.join(job_dir, n + ".stl"), force="mesh"))
+        model = m if model is None else model + m
+    return model
+
+
+def seam_figures(setup, model, deposit, bed_pose, by_arm=None):
+    """The seam figures of a deposit: ({"a/b": {"bonded_share", "samples"}},
+    {"a/b": {"layers", "early"}}) by :func:`seam_setup`'s ``setup``;
+    ``model`` the placed model (Manifold, bed frame mm), ``deposit`` (world
+    m) and ``bed_pose`` as :func:`bonded_share` takes them, ``by_arm`` the
+    beads with their times as :func:`lap_order` takes them (None: no lap
+    order).  ({}, {}) without a setup."""
+    if not setup:
+        return {}, {}
+    planes = {tuple(k.split("/")): (np.asarray(v["normal"], dtype=float), float(v["offset_mm"]))
+              for k, v in setup["planes"].items()}
+    z_tops = np.asarray(setup["z_tops_mm"], dtype=float)
+    shares = _bonded(model, planes, deposit, bed_pose, z_tops, np.asarray(setup["heights_mm"], dtype=float),
+                     setup["bead_width_mm"])
+    order = lap_order(by_arm, planes, setup["reach_mm"], z_tops) if by_arm is not None else {}
+    return shares, order
 
 
 def lap_order(by_arm, planes, reach_mm, z_tops):

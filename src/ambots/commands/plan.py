@@ -58,33 +58,25 @@ def seam_report(job, deposit, result=None, settings=None):
     (:func:`ambots.seams.bonded_share`), {"a/b": {"layers", "early"}}: with
     the runners' ``result``, whether each arm laid its beads near the seam
     only after its neighbour's layer below there (:func:`ambots.seams.lap_order`,
-    within the interlock's reach and a bead); ({}, {}) for a one-arm plan."""
+    within the interlock's reach and a bead); ({}, {}) for a one-arm plan.
+    The live capture measures its deposit the same way
+    (:func:`ambots.seams.seam_figures` with ``job.json``'s ``seams``)."""
     import numpy as np
 
-    from ambots.coordinate.zones import seam_planes
     from ambots.mesh import to_manifold
-    from ambots.seams import bonded_share, interlock_depth_mm, lap_order
-    from ambots.slicer import SliceSettings, layer_heights
-    live = [p for p in job.parts if not p.empty]
-    if len(live) < 2:
+    from ambots.seams import beads_in_bed_mm, seam_figures
+    setup = job.seam_setup(settings)
+    if setup is None:
         return {}, {}
-    s = settings or SliceSettings()
-    model = to_manifold(job.mesh)
-    z_tops, heights = layer_heights(float(model.bounding_box()[5]), s)
-    shares = bonded_share(model, job.parts, deposit, job.cell.bed.pose, z_tops, heights, s.bead_width_mm)
-    order = {}
+    by_arm = None
     if result is not None:
-        T = np.linalg.inv(job.cell.bed.pose)
-        bed = lambda P: (np.asarray(P) @ T[:3, :3].T + T[:3, 3]) * 1e3
         by_arm = {}
         for name, r in result.runners.items():
             beads = [b for b in r.beads if len(b.e_mm)]
             if beads:
-                by_arm[name] = (bed(np.concatenate([b.p0 for b in beads])), bed(np.concatenate([b.p1 for b in beads])),
-                                np.concatenate([b.t for b in beads]))
-        reach = interlock_depth_mm(s.bead_width_mm, s.layer_height_mm) + s.bead_width_mm
-        order = lap_order(by_arm, seam_planes(live), reach, z_tops)
-    return shares, order
+                by_arm[name] = tuple(np.concatenate([getattr(b, k) for b in beads]) for k in ("p0", "p1", "t"))
+        by_arm = beads_in_bed_mm(by_arm, job.cell.bed.pose)
+    return seam_figures(setup, to_manifold(job.mesh), deposit, job.cell.bed.pose, by_arm)
 
 
 def deposit_of(result, layer_height_m=None):

@@ -319,6 +319,29 @@ class PrintRecorder:
         return deposit_of_beads({n: (r[:, 0:3], r[:, 3:6], r[:, 7]) for n, r in rows.items()},
                                 SliceSettings().layer_height_mm * 1e-3)
 
+    def seam_figures(self, job, dep):
+        """The seam figures of the deposit ``dep`` as ``plan`` reports them
+        (:func:`ambots.seams.seam_figures`, by ``job.json``'s ``seams``, on
+        the parts in the job folder; the lap order by the beads' times on
+        the one clock): {} for a one-arm job or without a job folder."""
+        setup = (job or {}).get("seams")
+        if not setup or not self.job_dir:
+            return {}
+        import numpy as np
+
+        from ambots.seams import beads_in_bed_mm, placed_model, seam_figures
+        try:
+            model = placed_model(self.job_dir, sorted({n for k in setup["planes"] for n in k.split("/")}))
+            with self._lock:
+                rows = {n: _latest_copy(np.concatenate(v), col=6) for n, v in self.bead_times.items() if v}
+            by_arm = beads_in_bed_mm({n: (r[:, 0:3], r[:, 3:6], r[:, 6]) for n, r in rows.items()},
+                                     self.cell.bed.pose)
+            shares, order = seam_figures(setup, model, dep, self.cell.bed.pose, by_arm)
+        except Exception as exc:           # the report is still written without them
+            rospy.logwarn("seam figures of %s: %s", self.job_dir, exc)
+            return {}
+        return {"seam": setup["seam"], "seam_bonded_share": shares, "seam_lap_order": order}
+
     def write(self, out_dir, model=None, mode=None, slicer=None, model_volume_mm3=None):
         """Write ``deposit.ply`` and ``report.json`` into ``out_dir``; returns the report."""
         import os
@@ -359,6 +382,7 @@ class PrintRecorder:
             job = self.job()
             if job and job.get("plan"):
                 extra["plan"] = job["plan"]
+            extra.update(self.seam_figures(job, dep))
             report = build({"model": model, "cell": self.cell.name, "mode": mode, "slicer": slicer},
                            self.done()[0], arms, makespan_s(self.stats), executed,
                            dep.volume_mm3() if len(dep) else 0.0, model_volume_mm3,
