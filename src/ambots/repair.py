@@ -5,6 +5,10 @@ holes are closed by MeshFix (``pymeshfix``, the low-level ``PyTMesh``
 binding: no pyvista), which fills every boundary loop with a triangulation
 of the loop's own corners (no refinement: no new vertices).  trimesh's own ``fill_holes`` closes
 only holes of 3 or 4 edges; manifold3d needs a closed mesh to start with.
+Holes that touch each other at a corner (MeshFix would fill them as one,
+with edges three triangles share) are traced loop by loop and each filled
+alone first (:func:`hole_loops`, :func:`fill_loop`).  A surface that crosses
+itself is found by :func:`self_intersections` (``ambots.mesh`` refuses it).
 
 **The rule** ("small against the model"): a repair is kept when both
 
