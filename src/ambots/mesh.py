@@ -331,7 +331,7 @@ def validate_mesh(mesh, name=None):
 
 
 #: meshes with more triangles are not checked for self-intersections
-#: (about 4 s and 160 MB for 327,680 triangles, growing with the count)
+#: (the cost, growing with the count: docs/pipeline.md, "Mesh repair")
 SELF_INTERSECTION_MAX_TRIANGLES = 1_000_000
 
 

@@ -252,7 +252,7 @@ def _assemble(mesh, keep, triangles, gone, n_filled):
 # ------------------------------------------------- holes touching at a corner
 
 #: most corners of a hole loop filled by the minimal-area triangulation
-#: (holes that touch another at a corner; O(n^3): 1.8 s for 150 corners)
+#: (holes that touch another at a corner; O(n^3): docs/pipeline.md, "Mesh repair")
 MAX_LOOP_CORNERS = 150
 
 
