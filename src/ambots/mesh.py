@@ -303,7 +303,8 @@ def validate_mesh(mesh, name=None):
     """Refuse a mesh that is not a closed, oriented volume.
 
     Checks, in order: open edges, non-manifold edges, inconsistent winding,
-    zero volume, acceptance by manifold3d.  ``name`` defaults to the file
+    zero volume, acceptance by manifold3d, no self-intersection
+    (:func:`check_self_intersection`).  ``name`` defaults to the file
     name recorded by :func:`load_model`.
     """
     name = name or source_name(mesh)
@@ -326,6 +327,38 @@ def validate_mesh(mesh, name=None):
         raise MeshError("%s: the normals point inward (negative volume %.3f mm^3)"
                         % (name, volume))
     to_manifold(mesh, name)  # raises when manifold3d does not accept it
+    check_self_intersection(mesh, name)
+
+
+#: meshes with more triangles are not checked for self-intersections
+#: (the cost, growing with the count: docs/pipeline.md, "Mesh repair")
+SELF_INTERSECTION_MAX_TRIANGLES = 1_000_000
+
+
+def check_self_intersection(mesh, name=None):
+    """Refuse a surface that crosses itself (:func:`ambots.repair.self_intersections`:
+    two triangles with no corner in common that intersect), naming where.
+
+    Such a surface has no one inside: the slicer's outlines, the volume and
+    the arms' split would each take a different one.  Shells that overlap
+    each other have already been united (:func:`repair_mesh`); what is left
+    is a shell that crosses itself (or a cavity crossing its outer wall):
+    refused, not repaired.  Meshes of more than
+    :data:`SELF_INTERSECTION_MAX_TRIANGLES` triangles are not checked (logged)."""
+    from ambots.repair import self_intersections
+    name = name or source_name(mesh)
+    if len(mesh.faces) > SELF_INTERSECTION_MAX_TRIANGLES:
+        log.warning("%s: not checked for self-intersections: %s triangles, more than %s", name,
+                    format(len(mesh.faces), ","), format(SELF_INTERSECTION_MAX_TRIANGLES, ","))
+        return
+    n, points = self_intersections(mesh, first=3)
+    if n:
+        raise MeshError("%s: the surface crosses itself: %d pair%s of triangles intersect, at %s mm (the "
+                        "model's frame): inside and outside are ambiguous there; not repaired (a part "
+                        "poking through another part of the same shell; overlapping separate shells "
+                        "are merged)" % (name, n, "" if n == 1 else "s",
+                                         ", ".join("(%.2f, %.2f, %.2f)" % tuple(p) for p in points)
+                                         + (", ..." if n > len(points) else "")))
 
 
 def source_name(mesh):

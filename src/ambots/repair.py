@@ -5,6 +5,10 @@ holes are closed by MeshFix (``pymeshfix``, the low-level ``PyTMesh``
 binding: no pyvista), which fills every boundary loop with a triangulation
 of the loop's own corners (no refinement: no new vertices).  trimesh's own ``fill_holes`` closes
 only holes of 3 or 4 edges; manifold3d needs a closed mesh to start with.
+Holes that touch each other at a corner (MeshFix would fill them as one,
+with edges three triangles share) are traced loop by loop and each filled
+alone first (:func:`hole_loops`, :func:`fill_loop`).  A surface that crosses
+itself is found by :func:`self_intersections` (``ambots.mesh`` refuses it).
 
 **The rule** ("small against the model"): a repair is kept when both
 
@@ -131,18 +135,23 @@ def close_holes(mesh, name, report):
     report.rule = rule_text()
     report.open_edges_before = open_edges(mesh)
     try:
-        closed, added, removed, report.holes_closed = _fill(mesh)
+        closed, added, removed, report.holes_closed, pinched_loops = _fill(mesh)
     except Exception as exc:  # noqa: BLE001 -- boundary to a third-party C++ library
         report.notes.append("MeshFix failed (%s: %s); holes left open" % (type(exc).__name__, exc))
         report.open_edges_after = report.open_edges_before
         return mesh.copy()               # validate_mesh refuses it, with the open-edge count
     report.open_edges_after = open_edges(closed)
+    if pinched_loops:
+        report.method += "; holes that touch at a corner: each loop alone, minimal-area triangulation"
+        report.notes.append("%d hole%s touching another at a corner filled one loop at a time"
+                            % (pinched_loops, "" if pinched_loops == 1 else "s"))
     pinched = nonmanifold_edges(closed)
     if pinched:                          # holes that touch each other: MeshFix's fill is not a surface
         report.notes.append("MeshFix's fill left %d edges shared by more than two triangles" % pinched)
         raise MeshError("%s: not a closed volume: %d open edges; closing them gives %d edges shared by more "
-                        "than two triangles (holes that touch each other at a corner or an edge): not "
-                        "repaired" % (name, report.open_edges_before, pinched))
+                        "than two triangles (holes that touch each other at a corner or an edge, and a loop "
+                        "of more than %d corners or with no triangulation of its own corners): not repaired"
+                        % (name, report.open_edges_before, pinched, MAX_LOOP_CORNERS))
     with np.errstate(divide="ignore", invalid="ignore"):
         if report.open_edges_after == 0 and closed.volume < 0:
             closed.invert()                  # and the patch with it: it is part of the outward mesh
@@ -181,12 +190,18 @@ LOCAL_FILL_TRIANGLES = 20_000
 def _fill(mesh):
     """Fill every hole of ``mesh`` with MeshFix; returns (closed mesh,
     added triangles, removed triangles, holes filled), the triangles as
-    Trimeshes keeping their orientation.
+    Trimeshes keeping their orientation, and how many of those holes
+    touch another at a corner (filled first, each loop alone:
+    :func:`_fill_pinched`).
 
     Large meshes: MeshFix gets the triangles within two rings of the holes;
     the patches it also puts on that region's own outer border (no hole of
     the model) are dropped, the others added to the whole mesh."""
     from pymeshfix import PyTMesh
+    mesh, pre, n_pre = _fill_pinched(mesh)    # holes that touch at a corner: each loop alone
+    if n_pre and not open_edges(mesh):
+        return _assemble(mesh, np.ones(len(mesh.faces) - len(pre), dtype=bool), pre, np.zeros((0, 3), int),
+                         n_pre) + (n_pre,)
     border = np.unique(mesh.edges_sorted[trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)])
     region = np.arange(len(mesh.faces))
     if len(mesh.faces) > LOCAL_FILL_TRIANGLES:
@@ -211,15 +226,292 @@ def _fill(mesh):
         triangles, added = triangles[~drop], added[~drop]
     keep = np.ones(len(mesh.faces), dtype=bool)
     keep[region[removed]] = False
+    n_open = len(mesh.faces) - len(pre)          # the triangles of the open mesh come first
+    gone = region[removed]
+    keep, gone = keep[:n_open], mesh.faces[gone[gone < n_open]]
+    pre = pre[~np.isin(np.arange(len(pre)) + n_open, region[removed])]
+    return _assemble(mesh, keep, np.concatenate([pre, triangles]), gone, n_pre + n_filled) + (n_pre,)
+
+
+def _assemble(mesh, keep, triangles, gone, n_filled):
+    """(closed mesh, added, removed, holes filled) of :func:`_fill`: the
+    first ``len(keep)`` triangles of ``mesh`` (the open mesh) where
+    ``keep``, plus ``triangles`` ((k, 3, 3)); ``gone``: the vertex indices
+    of the open mesh's triangles MeshFix removed."""
     closed = trimesh.Trimesh(np.concatenate([mesh.vertices, triangles.reshape(-1, 3)]),
-                             np.concatenate([mesh.faces[keep],
+                             np.concatenate([mesh.faces[:len(keep)][keep],
                                              len(mesh.vertices) + np.arange(3 * len(triangles)).reshape(-1, 3)]),
                              process=False)
     closed.merge_vertices()
     closed.remove_unreferenced_vertices()
     return (closed, trimesh.Trimesh(triangles.reshape(-1, 3), np.arange(3 * len(triangles)).reshape(-1, 3),
                                     process=False),
-            trimesh.Trimesh(mesh.vertices, mesh.faces[region[removed]], process=False), n_filled)
+            trimesh.Trimesh(mesh.vertices, np.asarray(gone).reshape(-1, 3), process=False), n_filled)
+
+
+# ------------------------------------------------- holes touching at a corner
+
+#: most corners of a hole loop filled by the minimal-area triangulation
+#: (holes that touch another at a corner; O(n^3): docs/pipeline.md, "Mesh repair")
+MAX_LOOP_CORNERS = 150
+
+
+def hole_loops(mesh):
+    """The holes of ``mesh`` (winding consistent) as loops of vertex
+    indices, each a simple cycle of open edges running against the
+    triangles beside it (the way a fill triangle must run them).
+
+    Where holes touch at a vertex (a pinch: several open edges leave it),
+    an edge arriving there is paired with the edge that leaves across the
+    same gap between two fans of triangles: not the edge of its own fan
+    (found by walking the fan) and, with more than two fans, the first
+    one clockwise (seen from outside) about the vertex's normal.  Returns
+    (loops, pinch vertices)."""
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    # open edges: one integer per undirected edge, those met once (2x faster than group_rows)
+    key = (np.minimum(directed[:, 0], directed[:, 1]) * (int(faces.max(initial=0)) + 1)
+           + np.maximum(directed[:, 0], directed[:, 1]))
+    order = np.argsort(key, kind="stable")
+    step = key[order][1:] != key[order][:-1]
+    once = order[np.concatenate([[True], step]) & np.concatenate([step, [True]])]
+    hole = directed[np.sort(once)][:, ::-1]      # open edges, run against their triangle
+    if not len(hole):
+        return [], np.zeros(0, dtype=np.int64)
+    leaving = {}
+    for k, a in enumerate(hole[:, 0].tolist()):
+        leaving.setdefault(a, []).append(k)
+    pinch = np.array(sorted(v for v, ks in leaving.items() if len(ks) > 1), dtype=np.int64)
+    following = {k: leaving[v][0] for k, v in enumerate(hole[:, 1].tolist()) if len(leaving.get(v, ())) == 1}
+    if len(pinch):
+        near = np.flatnonzero(np.isin(faces, pinch).any(axis=1))      # only the fans of the pinches
+        face_of = {(a, b): f for f, row in zip(near.tolist(), faces[near].tolist())
+                   for a, b in ((row[0], row[1]), (row[1], row[2]), (row[2], row[0]))}
+        for v in pinch.tolist():
+            used = set()
+            for k in np.flatnonzero(hole[:, 1] == v).tolist():
+                u = int(hole[k, 0])
+                own = _own_fan_edge(faces, face_of, v, u)
+                candidates = [e for e in leaving[v] if e not in used and hole[e, 1] != own] or \
+                    [e for e in leaving[v] if e not in used]
+                e = min(candidates, key=lambda e: _clockwise(mesh, v, u, int(hole[e, 1])))
+                following[k] = e
+                used.add(e)
+    loops, seen = [], np.zeros(len(hole), dtype=bool)
+    for start in range(len(hole)):
+        if seen[start]:
+            continue
+        loop, k = [], start
+        while k is not None and not seen[k]:
+            seen[k] = True
+            loop.append(int(hole[k, 0]))
+            k = following.get(k)
+        loops.append(loop)
+    return loops, pinch
+
+
+def _own_fan_edge(faces, face_of, v, u):
+    """The far vertex of the open edge that bounds, at ``v``, the fan of
+    triangles holding the directed edge v->u: walked across the fan."""
+    a = u
+    for _ in range(len(face_of)):
+        f = faces[face_of[(v, a)]].tolist()
+        i = f.index(v)
+        w = f[(i + 2) % 3]                       # the triangle (v, a, w): its other edge at v is w->v
+        if (v, w) not in face_of:
+            return w
+        a = w
+    return None
+
+
+def _clockwise(mesh, v, u, x):
+    """Clockwise angle (rad, seen from outside) from direction v->u to v->x
+    about the vertex normal of ``v``."""
+    n = mesh.vertex_normals[v]
+    a, b = mesh.vertices[u] - mesh.vertices[v], mesh.vertices[x] - mesh.vertices[v]
+    a, b = a - n * a.dot(n), b - n * b.dot(n)
+    return float((np.arctan2(np.cross(b, a).dot(n), a.dot(b))) % (2 * np.pi))
+
+
+def fill_loop(vertices, loop, existing):
+    """Minimal-area triangulation of the hole ``loop`` (vertex indices, in
+    the hole's direction) using only its own corners; no triangle with a
+    corner twice and no chord that is already an edge (``existing``: set
+    of sorted vertex pairs).  Returns (k, 3) vertex indices oriented like
+    the surface around, or None when there is no such triangulation."""
+    n = len(loop)
+    if n < 3 or n > MAX_LOOP_CORNERS:
+        return None
+    p = vertices[loop]
+    ids = np.asarray(loop)
+    ok = np.ones((n, n), dtype=bool)             # chord i-j allowed
+    for i in range(n):
+        for j in range(i + 2, n):
+            if (i, j) == (0, n - 1):
+                continue
+            a, b = loop[i], loop[j]
+            if a == b or (min(a, b), max(a, b)) in existing:
+                ok[i, j] = False
+    cost = np.full((n, n), np.inf)
+    best = np.zeros((n, n), dtype=np.int64)
+    for i in range(n - 1):
+        cost[i, i + 1] = 0.0
+    for gap in range(2, n):
+        for i in range(0, n - gap):
+            j = i + gap
+            if not ok[i, j] or ids[i] == ids[j]:
+                continue
+            k = np.arange(i + 1, j)
+            area = 0.5 * np.linalg.norm(np.cross(p[k] - p[i], p[j] - p[i]), axis=1)
+            bad = (ids[k] == ids[i]) | (ids[k] == ids[j])
+            total = cost[i, k] + cost[k, j] + np.where(bad, np.inf, area)
+            m = int(np.argmin(total))
+            cost[i, j], best[i, j] = total[m], k[m]
+    if not np.isfinite(cost[0, n - 1]):
+        return None
+    out, stack = [], [(0, n - 1)]
+    while stack:
+        i, j = stack.pop()
+        if j - i < 2:
+            continue
+        k = int(best[i, j])
+        out.append((loop[i], loop[k], loop[j]))
+        stack += [(i, k), (k, j)]
+    return np.array(out, dtype=np.int64)
+
+
+def _fill_pinched(mesh):
+    """Fill, each on its own, the hole loops that pass through a vertex
+    where holes touch (:func:`hole_loops`, :func:`fill_loop`).  Returns
+    (mesh with those loops filled, added (k, 3, 3) triangles, loops
+    filled); ``mesh`` itself and no triangles when no holes touch."""
+    loops, pinch = hole_loops(mesh)
+    if not len(pinch):
+        return mesh, np.zeros((0, 3, 3)), 0
+    touching = [loop for loop in loops if np.isin(loop, pinch).any()]
+    existing = set(map(tuple, np.sort(mesh.edges_unique, axis=1).tolist()))
+    new, n_filled = [], 0
+    for loop in touching:
+        tri = fill_loop(mesh.vertices, loop, existing)
+        if tri is None:
+            continue                             # left to MeshFix (and to the check after it)
+        existing.update(map(tuple, np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]),
+                                           axis=1).tolist()))
+        new.append(tri)
+        n_filled += 1
+    if not new:
+        return mesh, np.zeros((0, 3, 3)), 0
+    new = np.concatenate(new)
+    filled = trimesh.Trimesh(mesh.vertices, np.concatenate([mesh.faces, new]), process=False)
+    return filled, mesh.vertices[new], n_filled
+
+
+
+# ------------------------------------------------------- self-intersections
+
+def self_intersections(mesh, first=10):
+    """Pairs of triangles of ``mesh`` that cross each other and share no
+    corner (a self-intersection, inside one shell or between shells).
+    Returns (n pairs found, up to ``first`` distinct points (k, 3), mm, where
+    an edge of one triangle of a pair passes through the other).
+
+    Broad phase: a uniform grid of cells about the mean triangle size, every
+    triangle in the cells its bounding box covers, candidate pairs those
+    sharing a cell whose boxes overlap; narrow phase: each of the six edges
+    of a pair against the other triangle (Moller-Trumbore), in numpy.  Hits
+    within 1e-9 of the model's size of an edge's end or of the other
+    triangle's border do not count: triangles that only touch are not
+    crossing (two coplanar triangles that overlap are not found either)."""
+    tri = np.asarray(mesh.triangles, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    if len(tri) < 2:
+        return 0, np.zeros((0, 3))
+    lo, hi = tri.min(axis=1), tri.max(axis=1)
+    size = float(np.linalg.norm(mesh.extents)) or 1.0
+    cell = max(float(np.mean(hi - lo)) * 2.0, 1e-6 * size)
+    c_lo = np.floor((lo - lo.min(axis=0)) / cell).astype(np.int64)
+    c_hi = np.floor((hi - lo.min(axis=0)) / cell).astype(np.int64)
+    span = c_hi - c_lo + 1
+    # one (cell, triangle) row per cell a triangle's box covers
+    count = np.prod(span, axis=1)
+    owner = np.repeat(np.arange(len(tri)), count)
+    k = np.arange(len(owner)) - np.repeat(np.cumsum(count) - count, count)
+    sx, sy = span[owner, 0], span[owner, 1]
+    ijk = c_lo[owner] + np.stack([k % sx, (k // sx) % sy, k // (sx * sy)], axis=1)
+    dims = ijk.max(axis=0) + 1
+    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    order = np.argsort(key, kind="stable")
+    key, owner = key[order], owner[order]
+    starts = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]]))
+    lengths = np.diff(np.concatenate([starts, [len(key)]]))
+    eps = 1e-9 * size
+    lo_cols = [np.ascontiguousarray(lo[:, axis]) for axis in range(3)]
+    hi_cols = [np.ascontiguousarray(hi[:, axis]) for axis in range(3)]
+    corners = [np.ascontiguousarray(faces[:, i]) for i in range(3)]
+    pairs = []
+    for m in np.unique(lengths[lengths > 1]):          # cells of m triangles: all pairs at once
+        i, j = np.triu_indices(int(m), 1)
+        cells = starts[lengths == m]
+        step = max(1, 500_000 // len(i))              # bounded memory: ~500,000 pairs at a time
+        for c in range(0, len(cells), step):
+            members = owner[cells[c:c + step, None] + np.arange(m)]      # (cells, m)
+            a, b = members[:, i].ravel(), members[:, j].ravel()
+            keep = np.ones(len(a), dtype=bool)
+            for lo_, hi_ in zip(lo_cols, hi_cols):    # boxes overlap (column by column: 5x faster)
+                keep &= (lo_[a] <= hi_[b] + eps) & (lo_[b] <= hi_[a] + eps)
+            a, b = a[keep], b[keep]
+            share = np.zeros(len(a), dtype=bool)      # neighbours (a corner in common) do not count
+            of_b = [cb[b] for cb in corners]
+            for ca in corners:
+                ca = ca[a]
+                for cb in of_b:
+                    share |= ca == cb
+            pairs.append(np.sort(np.stack([a[~share], b[~share]], axis=1), axis=1))
+    pairs = np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
+    key = np.unique(pairs[:, 0] * len(tri) + pairs[:, 1])        # a pair met in several cells: once
+    pairs = np.stack([key // len(tri), key % len(tri)], axis=1)
+    if not len(pairs):
+        return 0, np.zeros((0, 3))
+    hit = np.zeros(len(pairs), dtype=bool)
+    point = np.zeros((len(pairs), 3))
+    for one, other in ((0, 1), (1, 0)):
+        t1, t2 = tri[pairs[:, one]], tri[pairs[:, other]]
+        for e in range(3):
+            p, q = t1[:, e], t1[:, (e + 1) % 3]
+            crossed, where = _segment_crosses(p, q, t2, eps)
+            new = crossed & ~hit
+            point[new] = where[new]
+            hit |= crossed
+    point = point[hit]
+    _, at = np.unique(np.round(point / eps) if len(point) else point, axis=0, return_index=True)
+    return int(hit.sum()), point[np.sort(at)][:first]     # distinct points, in pair order
+
+
+def _segment_crosses(p, q, tri, eps):
+    """Whether segments p-q ((n, 3)) pass through the inside of the
+    triangles ``tri`` ((n, 3, 3)), and where."""
+    d = q - p
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    h = np.cross(d, e2)
+    det = np.einsum("ij,ij->i", e1, h)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / det
+        s = p - tri[:, 0]
+        u = np.einsum("ij,ij->i", s, h) * inv
+        qv = np.cross(s, e1)
+        v = np.einsum("ij,ij->i", d, qv) * inv
+        t = np.einsum("ij,ij->i", e2, qv) * inv
+        # tolerances in lengths: along the segment, and from the triangle's borders
+        length = np.linalg.norm(d, axis=1)
+        tol_t = eps / np.maximum(length, eps)
+        ok = (np.abs(det) > 1e-12 * np.maximum(length, eps) * np.linalg.norm(e1, axis=1)
+              * np.linalg.norm(e2, axis=1))
+        # barycentric tolerance: eps over the triangle's smallest height
+        area2 = np.linalg.norm(np.cross(e1, e2), axis=1)
+        longest = np.max(np.linalg.norm(np.stack([e1, e2, e2 - e1], 1), axis=2), axis=1)
+        tol_b = eps * longest / np.maximum(area2, eps * eps)
+        crossed = ok & (t > tol_t) & (t < 1 - tol_t) & (u > tol_b) & (v > tol_b) & (u + v < 1 - tol_b)
+    return crossed, p + d * np.where(crossed, t, 0.0)[:, None]
 
 
 def nonmanifold_edges(mesh):

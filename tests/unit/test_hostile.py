@@ -20,6 +20,7 @@ import struct
 import time
 import tracemalloc
 
+import numpy as np
 import pytest
 import trimesh
 import yaml
@@ -450,6 +451,14 @@ def _two(offset):
     return _stl(trimesh.util.concatenate([a, b]))
 
 
+def _spike():
+    """One shell crossing itself: the cube's top centre pushed through its bottom."""
+    box = _box().subdivide().subdivide()
+    vertices = box.vertices.copy()
+    vertices[np.argmin(np.linalg.norm(vertices - (0.0, 0.0, 10.0), axis=1))] = (0.0, 0.0, -15.0)
+    return _stl(trimesh.Trimesh(vertices, box.faces, process=False))
+
+
 #: (case id, file name, content, kwargs, words of the MeshError)
 BAD_MODELS = [
     ("empty", "empty.stl", b"", {}, "file is empty"),
@@ -462,6 +471,8 @@ BAD_MODELS = [
      "not a closed volume: 4 open edges"),
     ("open: two faces off", "open box.stl", _stl(_without([0, 2])), {}, "not a closed volume: 6 open edges"),
     ("touching cubes", "touching.stl", _two((20.0, 0.0, 0.0)), {}, "4 non-manifold edges"),
+    ("one shell crossing itself", "spike.stl", _spike(), {},
+     "the surface crosses itself: 8 pairs of triangles intersect, at (-0.50, 0.50, -10.00)"),
     ("PNG bytes", "photo.stl", b"\x89PNG\r\n\x1a\n" + bytes(range(256)) * 2, {}, "not a readable STL file"),
     ("G-code text", "part.stl", b"G21\nG1 X1 Y1 F600\n" * 20, {}, "not a readable STL file"),
     ("truncated 10^7 header", "big.stl", b"\0" * 80 + struct.pack("<I", 10 ** 7) + b"\0" * 1000, {},
@@ -541,6 +552,7 @@ def test_self_intersecting_cubes_are_merged_and_the_job_runs(tmp_path, cell, off
     ("empty.stl", b"", "empty.stl: file is empty"),
     ("notes.stl", b"buy filament\n" * 10, "notes.stl: not a readable STL file"),
     ("missing.stl", None, "missing.stl: no such file"),
+    ("spike.stl", _spike(), "spike.stl: the surface crosses itself"),
 ])
 def test_the_job_names_the_model_file(tmp_path, cell, name, content, why):
     path = tmp_path / name

@@ -8,6 +8,7 @@ import trimesh
 from ambots.errors import MeshError
 from ambots.mesh import (check_fits, from_manifold, load_model, place_on_bed,
                          to_manifold)
+from ambots.repair import self_intersections
 
 
 from shapes import MODELS, cube, cylinder, overhang  # tests/unit/shapes.py
@@ -117,6 +118,69 @@ def test_a_cavity_stays_a_cavity(tmp_path):
     inner.invert()
     path = write(tmp_path / "hollow.stl", trimesh.util.concatenate([outer, inner]))
     assert load_model(path).volume == pytest.approx(8000.0 - 1000.0)
+
+
+def spike():
+    """One shell that crosses itself: the centre of the top of a 20 mm cube
+    (192 triangles) pushed down to z = -15, through the bottom (z = -10)."""
+    b = trimesh.creation.box((20.0, 20.0, 20.0)).subdivide().subdivide()
+    v = int(np.argmin(np.linalg.norm(b.vertices - (0.0, 0.0, 10.0), axis=1)))
+    vertices = b.vertices.copy()
+    vertices[v] = (0.0, 0.0, -15.0)
+    return trimesh.Trimesh(vertices, b.faces, process=False)
+
+
+def tubed():
+    """Two 20 mm cubes overlapping (the second moved by (10, 5, 5)), made one
+    shell: a triangle off each, joined by a tube of 6 triangles."""
+    a, b = cube(), cube()
+    b.apply_translation((10.0, 5.0, 5.0))
+    ta = int(np.flatnonzero(a.face_normals[:, 1] > 0.5)[0])
+    tb = int(np.flatnonzero(b.face_normals[:, 1] < -0.5)[0])
+    la, lb = a.faces[ta][::-1], b.faces[tb][::-1] + 8           # the two holes' loops
+    faces = np.vstack([np.delete(a.faces, ta, 0), np.delete(b.faces, tb, 0) + 8])
+    vertices = np.vstack([a.vertices, b.vertices])
+    for shift in range(3):                          # the tube that is closed and oriented
+        lbb = np.roll(lb[::-1], shift)
+        tube = [t for i in range(3) for t in ([la[(i + 1) % 3], la[i], lbb[i]],
+                                              [la[(i + 1) % 3], lbb[i], lbb[(i + 1) % 3]])]
+        mesh = trimesh.Trimesh(vertices, np.vstack([faces, tube]), process=False)
+        if mesh.is_watertight and mesh.is_winding_consistent:
+            return mesh
+    raise AssertionError("no tube")
+
+
+@pytest.mark.parametrize("make, where", [(spike, (-0.5, 0.5, -10.0)), (tubed, (0.0, 0.0, 10.0))],
+                         ids=["spike through the bottom", "two cubes in one shell"])
+def test_a_shell_that_crosses_itself_is_refused_naming_where(tmp_path, make, where):
+    """Before: loaded without a word and sliced (the spike's protruding tip
+    dropped, its volume 7375 mm^3 counted with the tip negative; the cubes'
+    12000 mm^3, their union being 13750 mm^3)."""
+    mesh = make()
+    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.body_count == 1
+    n, points = self_intersections(mesh)
+    assert n > 0 and np.allclose(points[0], where)
+    message = refusal(write(tmp_path / "crossed.stl", mesh))
+    assert message.startswith("crossed.stl: the surface crosses itself: %d pairs of triangles intersect, "
+                              "at (%.2f, %.2f, %.2f)" % ((n,) + where)), message
+    assert "mm (the model's frame)" in message and "not repaired" in message
+
+
+def test_valid_models_are_not_taken_for_self_intersecting():
+    """Neighbours share corners and edges, cavities and unions of shells
+    touch nothing: no false alarm; and a spike that only reaches the bottom
+    face's plane from inside is not a crossing."""
+    for mesh in [MODELS[k]() for k in sorted(MODELS)] + [
+            trimesh.creation.icosphere(subdivisions=5, radius=50.0),       # 20,480 triangles
+            trimesh.creation.torus(30.0, 5.0, major_sections=128, minor_sections=32),
+            trimesh.creation.cylinder(radius=10.0, height=20.0, sections=256)]:    # long thin fans
+        assert self_intersections(mesh)[0] == 0
+    inner = trimesh.creation.box((10.0, 10.0, 10.0))
+    inner.invert()
+    assert self_intersections(trimesh.util.concatenate([cube(), inner]))[0] == 0
+    s = spike()
+    s.vertices[np.argmin(s.vertices[:, 2])] = (0.0, 0.0, -9.0)    # the dent stops 1 mm short
+    assert self_intersections(s)[0] == 0
 
 
 # ----------------------------------------------------------------- refusals
