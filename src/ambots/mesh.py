@@ -336,7 +336,7 @@ SELF_INTERSECTION_MAX_TRIANGLES = 1_000_000
 
 
 def check_self_intersection(mesh, name=None):
-    """Refuse a surface that crosses itself (:func:`ambots.repair.self_intersections`:
+    """Refuse a surface that crosses itself (:func:`ambots.selfcross.self_intersections`:
     two triangles with no corner in common that intersect), naming where.
 
     Such a surface has no one inside: the slicer's outlines, the volume and
@@ -345,7 +345,7 @@ def check_self_intersection(mesh, name=None):
     is a shell that crosses itself (or a cavity crossing its outer wall):
     refused, not repaired.  Meshes of more than
     :data:`SELF_INTERSECTION_MAX_TRIANGLES` triangles are not checked (logged)."""
-    from ambots.repair import self_intersections
+    from ambots.selfcross import self_intersections
     name = name or source_name(mesh)
     if len(mesh.faces) > SELF_INTERSECTION_MAX_TRIANGLES:
         log.warning("%s: not checked for self-intersections: %s triangles, more than %s", name,

@@ -8,7 +8,7 @@ import trimesh
 from ambots.errors import MeshError
 from ambots.mesh import (check_fits, from_manifold, load_model, place_on_bed,
                          to_manifold)
-from ambots.repair import self_intersections
+from ambots.selfcross import self_intersections
 
 
 from shapes import MODELS, cube, cylinder, overhang  # tests/unit/shapes.py
