@@ -198,7 +198,9 @@ def repair_mesh(mesh):
     and the refusal with the figures when it is broken); make the winding
     consistent and the normals point outward; merge shells that overlap
     each other (a self-intersection left by exporting several parts as one
-    mesh).  Each change is appended to ``mesh.metadata['ambots_repairs']``;
+    mesh); repair a surface that crosses itself when the defect is small
+    (:func:`ambots.repair.repair_crossings`: the rule, and the refusal with
+    the figure that failed).  Each change is appended to ``mesh.metadata['ambots_repairs']``;
     ``mesh.metadata['ambots_repair']`` is the
     :class:`ambots.repair.RepairReport`.
     """
@@ -366,10 +368,11 @@ def check_self_intersection(mesh, name=None):
     two triangles with no corner in common that intersect), naming where.
 
     Such a surface has no one inside: the slicer's outlines, the volume and
-    the arms' split would each take a different one.  Shells that overlap
-    each other have already been united (:func:`repair_mesh`); what is left
-    is a shell that crosses itself (or a cavity crossing its outer wall):
-    refused, not repaired.  Meshes of more than
+    the arms' split would each take a different one.  :func:`repair_mesh`
+    has united shells that overlap each other, repaired a small crossing
+    and refused a large one; what is left here is a mesh loaded without
+    repair (or changed since).  A mesh :func:`repair_mesh` found clean and
+    unchanged since is not checked again.  Meshes of more than
     :data:`SELF_INTERSECTION_MAX_TRIANGLES` triangles are not checked (logged)."""
     from ambots.selfcross import self_intersections
     name = name or source_name(mesh)

@@ -8,7 +8,8 @@ only holes of 3 or 4 edges; manifold3d needs a closed mesh to start with.
 Holes that touch each other at a corner (MeshFix would fill them as one,
 with edges three triangles share) are traced loop by loop and each filled
 alone first (:func:`hole_loops`, :func:`fill_loop`).  A surface that crosses
-itself is found by :func:`ambots.selfcross.self_intersections` (``ambots.mesh`` refuses it).
+itself is found by :func:`ambots.selfcross.crossing_pairs` and repaired
+when the defect is small (:func:`repair_crossings`: its own rule).
 
 **The rule** ("small against the model"): a repair is kept when both
 
