@@ -198,7 +198,9 @@ def repair_mesh(mesh):
     and the refusal with the figures when it is broken); make the winding
     consistent and the normals point outward; merge shells that overlap
     each other (a self-intersection left by exporting several parts as one
-    mesh).  Each change is appended to ``mesh.metadata['ambots_repairs']``;
+    mesh); repair a surface that crosses itself when the defect is small
+    (:func:`ambots.repair.repair_crossings`: the rule, and the refusal with
+    the figure that failed).  Each change is appended to ``mesh.metadata['ambots_repairs']``;
     ``mesh.metadata['ambots_repair']`` is the
     :class:`ambots.repair.RepairReport`.
     """
@@ -234,9 +236,35 @@ def repair_mesh(mesh):
     if n_flip:
         notes.append("flipped %d triangles to make the normals point outward" % n_flip)
     mesh = _merge_overlapping_shells(mesh)
+    mesh = _repair_crossings(mesh, report)
     report.faces_after = len(mesh.faces)
     report.open_edges_after = open_edge_count(mesh)
     return mesh
+
+
+#: key of ``Trimesh.metadata``: the hash of the mesh found not to cross itself
+#: by :func:`repair_mesh` (:func:`check_self_intersection` does not look again)
+UNCROSSED_KEY = "ambots_uncrossed"
+
+
+def _repair_crossings(mesh, report):
+    """Repair a closed surface that crosses itself when the defect is small
+    (:func:`ambots.repair.repair_crossings`: the rule, and the refusal with
+    the figure that failed); return the mesh (``mesh`` itself when it does
+    not cross itself, or is not closed: :func:`validate_mesh` refuses it)."""
+    from ambots.repair import repair_crossings
+    from ambots.selfcross import crossing_pairs
+    if (len(mesh.faces) > SELF_INTERSECTION_MAX_TRIANGLES or open_edge_count(mesh)
+            or nonmanifold_edge_count(mesh) or not mesh.is_winding_consistent):
+        return mesh
+    pairs, points = crossing_pairs(mesh)
+    if not len(pairs):
+        mesh.metadata[UNCROSSED_KEY] = hash(mesh)
+        return mesh
+    repaired = repair_crossings(mesh, source_name(mesh), report, pairs, points, mesh.metadata[REPAIRS_KEY])
+    repaired.metadata.update(mesh.metadata)
+    repaired.metadata[UNCROSSED_KEY] = hash(repaired)     # the repair checked it
+    return repaired
 
 
 def _fix_orientation(mesh):
@@ -340,10 +368,11 @@ def check_self_intersection(mesh, name=None):
     two triangles with no corner in common that intersect), naming where.
 
     Such a surface has no one inside: the slicer's outlines, the volume and
-    the arms' split would each take a different one.  Shells that overlap
-    each other have already been united (:func:`repair_mesh`); what is left
-    is a shell that crosses itself (or a cavity crossing its outer wall):
-    refused, not repaired.  Meshes of more than
+    the arms' split would each take a different one.  :func:`repair_mesh`
+    has united shells that overlap each other, repaired a small crossing
+    and refused a large one; what is left here is a mesh loaded without
+    repair (or changed since).  A mesh :func:`repair_mesh` found clean and
+    unchanged since is not checked again.  Meshes of more than
     :data:`SELF_INTERSECTION_MAX_TRIANGLES` triangles are not checked (logged)."""
     from ambots.selfcross import self_intersections
     name = name or source_name(mesh)
@@ -351,12 +380,14 @@ def check_self_intersection(mesh, name=None):
         log.warning("%s: not checked for self-intersections: %s triangles, more than %s", name,
                     format(len(mesh.faces), ","), format(SELF_INTERSECTION_MAX_TRIANGLES, ","))
         return
+    if mesh.metadata.get(UNCROSSED_KEY) == hash(mesh):
+        return                           # checked by repair_mesh, unchanged since
     n, points = self_intersections(mesh, first=3)
     if n:
         raise MeshError("%s: the surface crosses itself: %d pair%s of triangles intersect, at %s mm (the "
-                        "model's frame): inside and outside are ambiguous there; not repaired (a part "
-                        "poking through another part of the same shell; overlapping separate shells "
-                        "are merged)" % (name, n, "" if n == 1 else "s",
+                        "model's frame): inside and outside are ambiguous there; not repaired (load with "
+                        "repair: a crossing small against the model is repaired, overlapping separate "
+                        "shells are merged)" % (name, n, "" if n == 1 else "s",
                                          ", ".join("(%.2f, %.2f, %.2f)" % tuple(p) for p in points)
                                          + (", ..." if n > len(points) else "")))
 

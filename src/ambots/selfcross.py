@@ -9,7 +9,20 @@ def self_intersections(mesh, first=10):
     """Pairs of triangles of ``mesh`` that cross each other and share no
     corner (a self-intersection, inside one shell or between shells).
     Returns (n pairs found, up to ``first`` distinct points (k, 3), mm, where
-    an edge of one triangle of a pair passes through the other).
+    an edge of one triangle of a pair passes through the other); how: see
+    :func:`crossing_pairs`."""
+    pairs, point = crossing_pairs(mesh)
+    if not len(pairs):
+        return 0, np.zeros((0, 3))
+    eps = 1e-9 * (float(np.linalg.norm(mesh.extents)) or 1.0)
+    _, at = np.unique(np.round(point / eps), axis=0, return_index=True)
+    return len(pairs), point[np.sort(at)][:first]     # distinct points, in pair order
+
+
+def crossing_pairs(mesh):
+    """The pairs of triangles of ``mesh`` that cross each other and share
+    no corner: (pairs (n, 2) face indices, points (n, 3) mm: for each pair,
+    where an edge of one passes through the other).
 
     Broad phase: a uniform grid of cells about the mean triangle size, every
     triangle in the cells its bounding box covers, candidate pairs those
@@ -21,7 +34,7 @@ def self_intersections(mesh, first=10):
     tri = np.asarray(mesh.triangles, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64)
     if len(tri) < 2:
-        return 0, np.zeros((0, 3))
+        return np.zeros((0, 2), dtype=np.int64), np.zeros((0, 3))
     lo, hi = tri.min(axis=1), tri.max(axis=1)
     size = float(np.linalg.norm(mesh.extents)) or 1.0
     cell = max(float(np.mean(hi - lo)) * 2.0, 1e-6 * size)
@@ -67,7 +80,7 @@ def self_intersections(mesh, first=10):
     key = np.unique(pairs[:, 0] * len(tri) + pairs[:, 1])        # a pair met in several cells: once
     pairs = np.stack([key // len(tri), key % len(tri)], axis=1)
     if not len(pairs):
-        return 0, np.zeros((0, 3))
+        return pairs, np.zeros((0, 3))
     hit = np.zeros(len(pairs), dtype=bool)
     point = np.zeros((len(pairs), 3))
     for one, other in ((0, 1), (1, 0)):
@@ -78,9 +91,7 @@ def self_intersections(mesh, first=10):
             new = crossed & ~hit
             point[new] = where[new]
             hit |= crossed
-    point = point[hit]
-    _, at = np.unique(np.round(point / eps) if len(point) else point, axis=0, return_index=True)
-    return int(hit.sum()), point[np.sort(at)][:first]     # distinct points, in pair order
+    return pairs[hit], point[hit]
 
 
 def _segment_crosses(p, q, tri, eps):

@@ -1,5 +1,6 @@
 """Model input: formats, repair, refusals, placement (ambots.mesh)."""
 import os
+import re
 
 import numpy as np
 import pytest
@@ -164,6 +165,9 @@ def test_a_shell_that_crosses_itself_is_refused_naming_where(tmp_path, make, whe
     assert message.startswith("crossed.stl: the surface crosses itself: %d pairs of triangles intersect, "
                               "at (%.2f, %.2f, %.2f)" % ((n,) + where)), message
     assert "mm (the model's frame)" in message and "not repaired" in message
+    # the figure that broke the rule (ambots.repair.repair_crossings): too much of the surface changed
+    shares = [float(x) for x in re.findall(r"([\d.]+) % of the surface, more than 5 %", message)]
+    assert shares and min(shares) > 5.0, message
 
 
 def test_valid_models_are_not_taken_for_self_intersecting():

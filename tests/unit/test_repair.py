@@ -360,3 +360,85 @@ def test_a_holey_model_is_repaired_and_planned_by_both_arms_without_contact(tmp_
     # the parts the arms printed add up to the closed model
     assert sum(trimesh.load(str(out / (a + ".stl"))).volume for a in ("kinova", "ur10")) == \
         pytest.approx(np.prod(BOX), rel=1e-3)
+
+
+# ------------------------------------------------- a surface that crosses itself
+
+SLOT_CUBE = 40.0                        # mm: a cube with a slot from the front to its middle
+
+
+def slotted(h, gap=1.0):
+    """A 40 mm cube with a slot ``gap`` wide (x), 20 mm deep (y >= 0), all
+    its height (z 0..40); the vertex nearest the middle of the slot's wall
+    at x = -gap/2 pushed ``h`` across (+x, and aside): a pyramid on that wall whose tip
+    pokes ``h - gap`` into the other wall.  Returns (mesh, intended volume:
+    the slotted cube plus the part of the pyramid in the slot (its tip,
+    inside the other wall, is in the solid already), mm^3)."""
+    import manifold3d as m3
+    from ambots.mesh import from_manifold
+    c = SLOT_CUBE
+    m = from_manifold(m3.Manifold.cube([c, c, c]).translate([-c / 2, -c / 2, 0])
+                      - m3.Manifold.cube([gap, c, c + 2]).translate([-gap / 2, 0, -1]))
+    m = m.subdivide().subdivide().subdivide()
+    m.merge_vertices()
+    v = int(np.argmin(np.linalg.norm(m.vertices - (-gap / 2, c / 4, c / 2), axis=1)))
+    assert np.isclose(m.vertices[v, 0], -gap / 2) and 0 < m.vertices[v, 1] < c / 2
+    fan = m.faces[np.isin(m.faces, v).any(axis=1)]
+    base = trimesh.Trimesh(m.vertices, fan, process=False).area          # flat: the pyramid's base
+    slotted_volume = c ** 3 - gap * (c / 2) * c
+    m.vertices[v] += (h, 0.6, 1.3)    # oblique (same volume): the pyramid's edges meet no edge of the wall
+    return m, slotted_volume + base * h / 3.0 * (1.0 - ((h - gap) / h) ** 3)
+
+
+@pytest.mark.parametrize("h", [1.5, 2.0])
+def test_a_small_pyramid_poking_through_a_wall_is_repaired(tmp_path, h):
+    from ambots.selfcross import self_intersections
+    mesh, intended = slotted(h)
+    assert mesh.is_watertight and mesh.is_winding_consistent and self_intersections(mesh)[0] > 0
+    path = save(tmp_path, "poke.stl", mesh.vertices, mesh.faces)
+    out = load_model(path)
+    r = report(out)
+    assert out.is_watertight and out.is_winding_consistent and self_intersections(out)[0] == 0
+    assert r.changed and r.crossing_pairs > 0 and r.crossing_area_share <= 0.05
+    # the "volume before" is the winding number's solid: the formula's
+    assert r.volume_before_mm3 == pytest.approx(intended, rel=1e-3)
+    assert out.volume == pytest.approx(intended, rel=MAX_VOLUME_CHANGE)
+    assert out.volume == pytest.approx(SLOT_CUBE ** 3 - SLOT_CUBE ** 2 / 2, rel=1e-6)   # the pyramid gone
+    assert r.volume_after_mm3 == pytest.approx(out.volume)
+    assert any(n.startswith("surface crossed itself at") and "repaired by" in n
+               for n in out.metadata["ambots_repairs"])
+
+
+def test_valid_models_cost_one_crossing_check_and_are_not_changed(tmp_path, monkeypatch):
+    import ambots.selfcross
+    from shapes import MODELS
+    calls = []
+    real = ambots.selfcross.crossing_pairs
+    monkeypatch.setattr(ambots.selfcross, "crossing_pairs", lambda m: calls.append(1) or real(m))
+    for name in sorted(MODELS):
+        model = MODELS[name]()
+        calls.clear()
+        out = load_model(save(tmp_path, name + ".stl", model.vertices, model.faces))
+        r = report(out)
+        assert len(calls) == 1, name               # repair_mesh looked once; validate_mesh did not again
+        assert not r.changed and r.crossing_pairs == 0 and len(out.faces) == len(model.faces)
+        assert out.volume == pytest.approx(model.volume)
+
+
+def test_a_crossing_repair_is_written_to_the_job_folder_and_planned_without_contact(tmp_path):
+    mesh, intended = slotted(1.5)
+    model = save(tmp_path, "poke.stl", mesh.vertices, mesh.faces)
+    out = tmp_path / "plan"
+    run = subprocess.run([sys.executable, "-m", "ambots", "plan", model, "--arms", "kinova,ur10",
+                          "--out", str(out)], capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "repaired: surface crossed itself" in run.stdout and "repaired mesh: model_repaired.stl" in run.stdout
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["finished"] and rep["collisions"] == {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}
+    r = json.loads((out / "job.json").read_text())["repair"]
+    assert r["crossing_pairs"] > 0 and r["path"] == "model_repaired.stl"
+    assert r["volume_before_mm3"] == pytest.approx(intended, rel=1e-3)
+    repaired = trimesh.load(str(out / "model_repaired.stl"))
+    assert repaired.is_watertight and repaired.volume == pytest.approx(intended, rel=MAX_VOLUME_CHANGE)
+    assert sum(trimesh.load(str(out / (a + ".stl"))).volume for a in ("kinova", "ur10")) == \
+        pytest.approx(repaired.volume, rel=1e-3)
