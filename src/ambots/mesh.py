@@ -199,7 +199,7 @@ def repair_mesh(mesh):
     consistent and the normals point outward; merge shells that overlap
     each other (a self-intersection left by exporting several parts as one
     mesh); repair a surface that crosses itself when the defect is small
-    (:func:`ambots.repair.repair_crossings`: the rule, and the refusal with
+    (:func:`ambots.selfcross.repair_crossings`: the rule, and the refusal with
     the figure that failed).  Each change is appended to ``mesh.metadata['ambots_repairs']``;
     ``mesh.metadata['ambots_repair']`` is the
     :class:`ambots.repair.RepairReport`.
@@ -249,10 +249,10 @@ UNCROSSED_KEY = "ambots_uncrossed"
 
 def _repair_crossings(mesh, report):
     """Repair a closed surface that crosses itself when the defect is small
-    (:func:`ambots.repair.repair_crossings`: the rule, and the refusal with
+    (:func:`ambots.selfcross.repair_crossings`: the rule, and the refusal with
     the figure that failed); return the mesh (``mesh`` itself when it does
     not cross itself, or is not closed: :func:`validate_mesh` refuses it)."""
-    from ambots.repair import repair_crossings
+    from ambots.selfcross import repair_crossings
     from ambots.selfcross import crossing_pairs
     if (len(mesh.faces) > SELF_INTERSECTION_MAX_TRIANGLES or open_edge_count(mesh)
             or nonmanifold_edge_count(mesh) or not mesh.is_winding_consistent):

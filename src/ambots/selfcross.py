@@ -1,9 +1,14 @@
 """Surfaces that cross themselves: pairs of triangles of a mesh that
-intersect without sharing a corner (inside one shell or between shells).
-:mod:`ambots.mesh` refuses such a model, naming where
-(:func:`ambots.mesh.check_self_intersection`); the cost against MeshFix's
-own check is in docs/pipeline.md."""
+intersect without sharing a corner (inside one shell or between shells),
+found by :func:`crossing_pairs` / :func:`self_intersections`, and repaired
+when the defect is small by :func:`repair_crossings` (its rule:
+:func:`crossing_rule_text`); :mod:`ambots.mesh` refuses the rest, naming
+where and the figure that failed.  The costs are in docs/pipeline.md."""
 import numpy as np
+import trimesh
+
+from ambots.errors import MeshError
+from ambots.repair import MAX_VOLUME_CHANGE, _fill, _patch, nonmanifold_edges, open_edges, winding_volume
 
 def self_intersections(mesh, first=10):
     """Pairs of triangles of ``mesh`` that cross each other and share no
@@ -121,3 +126,162 @@ def _segment_crosses(p, q, tri, eps):
     return crossed, p + d * np.where(crossed, t, 0.0)[:, None]
 
 
+# ------------------------------------------------ a surface crossing itself
+
+#: most of the surface the repair of a self-crossing surface may change
+#: (triangles removed, as a share of the original surface area)
+MAX_CROSSING_AREA_SHARE = 0.05
+#: rounds of "remove the crossing triangles and a ring, fill the holes"
+CROSSING_ROUNDS = 3
+
+
+def repair_crossings(mesh, name, report, pairs, points, notes):
+    """Repair a closed surface that crosses itself (``pairs``, ``points``:
+    :func:`ambots.selfcross.crossing_pairs`) when the defect is small;
+    return the repaired mesh (a new Trimesh), fill ``report`` and append
+    the repair in words to ``notes``.
+
+    Two ways are tried, the first whose result keeps the rule wins:
+
+    1. MeshFix's own clean-up (``PyTMesh.clean``: it removes the triangles
+       that cross and fills the holes; it changes the fewest triangles);
+    2. :func:`_cut_and_fill`: the triangles of the crossing pairs and a
+       ring around them removed, the holes filled (:func:`_fill`), up to
+       :data:`CROSSING_ROUNDS` rounds.
+
+    **The rule**: the result is watertight, consistently oriented, has as
+    many bodies as before and does not cross itself; the triangles removed
+    are at most :data:`MAX_CROSSING_AREA_SHARE` of the surface area; the
+    volume after is within :data:`MAX_VOLUME_CHANGE` of the original's
+    winding-number volume (the points whose generalized winding number is
+    >= 0.5: the solid the crossing surface means, each place counted once;
+    :func:`winding_volume`, sampled near the change only).
+    Raises MeshError naming ``name``, where, and the figure that failed."""
+    where = ", ".join("(%.2f, %.2f, %.2f)" % tuple(p) for p in _distinct(points, mesh)[:3]) + \
+        (", ..." if len(pairs) > 3 else "")
+    head = ("%s: the surface crosses itself: %d pair%s of triangles intersect, at %s mm (the model's frame)"
+            % (name, len(pairs), "" if len(pairs) == 1 else "s", where))
+    report.crossing_pairs = len(pairs)
+    report.rule = (report.rule + "; " if report.rule else "") + "crossings: " + crossing_rule_text()
+    tried = []
+    for method, attempt in (("pymeshfix (MeshFix) clean", _meshfix_clean),
+                            ("crossing triangles and a ring removed, holes filled by pymeshfix (MeshFix)",
+                             lambda m: _cut_and_fill(m, pairs))):
+        try:
+            current = attempt(mesh)
+        except Exception as exc:  # noqa: BLE001 -- boundary to a third-party C++ library
+            tried.append("%s: failed (%s: %s)" % (method, type(exc).__name__, exc))
+            continue
+        why, figures = _judge(mesh, current)
+        if why:
+            tried.append("%s: %s" % (method, why))
+            continue
+        added, gone, area, before, after = figures
+        report.method = (report.method + "; " if report.method else "") + "crossings: " + method
+        report.crossing_area_mm2 = area
+        report.crossing_area_share = area / float(mesh.area)
+        report.faces_added += len(added.faces)
+        report.faces_removed += len(gone.faces)
+        if report.volume_before_mm3 is None:
+            report.volume_before_mm3 = before
+        report.volume_after_mm3 = after
+        report.volume_change = (after - report.volume_before_mm3) / report.volume_before_mm3
+        notes.append("surface crossed itself at %s mm: %d pair%s of triangles, repaired by %s: %d "
+                            "triangles removed (%.2f mm^2, %.2f %% of the surface), %d added; volume %.1f "
+                            "(winding number) -> %.1f mm^3"
+                            % (where, len(pairs), "" if len(pairs) == 1 else "s", method, len(gone.faces),
+                               area, 100 * report.crossing_area_share, len(added.faces), before, after))
+        return current
+    raise MeshError("%s: not repaired: %s (the rule: %s)" % (head, "; ".join(tried), crossing_rule_text()))
+
+
+def _judge(mesh, current):
+    """(why the repair ``current`` of ``mesh`` breaks the rule or None,
+    (added, removed, removed area, volume before, volume after))."""
+    if open_edges(current) or nonmanifold_edges(current) or not current.is_winding_consistent:
+        return ("the result is not a closed oriented surface (%d open, %d non-manifold edges)"
+                % (open_edges(current), nonmanifold_edges(current)), None)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if current.volume < 0:
+            current.invert()
+    added, gone = _patch(mesh, current)
+    area = float(mesh.area_faces[gone].sum())
+    share = area / float(mesh.area) if mesh.area > 0 else 1.0
+    if share > MAX_CROSSING_AREA_SHARE:
+        return ("it removes %.1f mm^2, %.1f %% of the surface, more than %g %%"
+                % (area, 100 * share, 100 * MAX_CROSSING_AREA_SHARE), None)
+    if current.body_count != mesh.body_count:
+        return "%d bodies before, %d after" % (mesh.body_count, current.body_count), None
+    left = len(crossing_pairs(current)[0])
+    if left:
+        return "%d pairs still cross" % left, None
+    added = trimesh.Trimesh(current.vertices, current.faces[added], process=False)
+    gone = trimesh.Trimesh(mesh.vertices, mesh.faces[gone], process=False)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        before, after = winding_volume(current, added, gone), float(current.volume)
+    change = (after - before) / before if before > 0 else float("inf")
+    if abs(change) > MAX_VOLUME_CHANGE:
+        return ("it changes the volume from %.1f mm^3 (winding number >= 0.5) to %.1f mm^3 (%+.1f %%), "
+                "more than %g %%" % (before, after, 100 * change, 100 * MAX_VOLUME_CHANGE), None)
+    return None, (added, gone, area, before, after)
+
+
+def _meshfix_clean(mesh):
+    """MeshFix's removal of self-intersections (``PyTMesh.clean``)."""
+    from pymeshfix import PyTMesh
+    fixer = PyTMesh(False)
+    fixer.load_array(np.ascontiguousarray(mesh.vertices, dtype=np.float64),
+                     np.ascontiguousarray(mesh.faces, dtype=np.int32))
+    fixer.clean(max_iters=10, inner_loops=3)
+    return trimesh.Trimesh(*fixer.return_arrays(), process=False)
+
+
+def _cut_and_fill(mesh, pairs):
+    """Remove the triangles of the crossing ``pairs`` and those sharing a
+    corner with them, fill the holes (:func:`_fill`); again with a wider
+    ring while the result still crosses itself (:data:`CROSSING_ROUNDS`)."""
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    drop = np.zeros(len(faces), dtype=bool)
+    current, found = mesh, pairs
+    for rounds in range(1, CROSSING_ROUNDS + 1):
+        drop[_original_faces(mesh, current, found.ravel())] = True
+        for _ in range(rounds):                 # the ring: faces sharing a corner, wider each round
+            drop |= np.isin(faces, faces[drop]).any(axis=1)
+        if drop.all():
+            raise ValueError("every triangle would be removed")
+        current = _fill(trimesh.Trimesh(mesh.vertices, faces[~drop], process=False))[0]
+        if open_edges(current) or nonmanifold_edges(current):
+            break
+        found = crossing_pairs(current)[0]
+        if not len(found):
+            break
+    return current
+
+
+def crossing_rule_text():
+    """The rule for a surface that crosses itself, in words."""
+    return ("closed, oriented, as many bodies and no crossing after; triangles removed <= %g %% of the "
+            "surface area; volume within %g %% of the original's (winding number >= 0.5)"
+            % (100 * MAX_CROSSING_AREA_SHARE, 100 * MAX_VOLUME_CHANGE))
+
+
+def _distinct(points, mesh):
+    """``points`` without repeats (within 1e-9 of the model's size), in order."""
+    if not len(points):
+        return points
+    eps = 1e-9 * (float(np.linalg.norm(mesh.extents)) or 1.0)
+    _, at = np.unique(np.round(points / eps), axis=0, return_index=True)
+    return points[np.sort(at)]
+
+
+def _original_faces(original, current, index):
+    """Indices of the triangles of ``original`` that are triangles
+    ``index`` of ``current`` (by their corners' coordinates); those not in
+    ``original`` (fill) give the original triangles sharing a corner with them."""
+    if current is original:
+        return np.unique(index)
+    _, ids = np.unique(np.round(np.concatenate([original.vertices, current.vertices]), 9), axis=0,
+                       return_inverse=True)
+    ids = ids.reshape(-1)
+    corners = np.unique(ids[len(original.vertices):][current.faces[np.unique(index)]])
+    return np.flatnonzero(np.isin(ids[:len(original.vertices)][original.faces], corners).any(axis=1))

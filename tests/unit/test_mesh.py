@@ -165,7 +165,7 @@ def test_a_shell_that_crosses_itself_is_refused_naming_where(tmp_path, make, whe
     assert message.startswith("crossed.stl: the surface crosses itself: %d pairs of triangles intersect, "
                               "at (%.2f, %.2f, %.2f)" % ((n,) + where)), message
     assert "mm (the model's frame)" in message and "not repaired" in message
-    # the figure that broke the rule (ambots.repair.repair_crossings): too much of the surface changed
+    # the figure that broke the rule (ambots.selfcross.repair_crossings): too much of the surface changed
     shares = [float(x) for x in re.findall(r"([\d.]+) % of the surface, more than 5 %", message)]
     assert shares and min(shares) > 5.0, message
 
