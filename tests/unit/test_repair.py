@@ -340,12 +340,8 @@ def test_a_holey_model_is_repaired_and_planned_by_both_arms_without_contact(tmp_
             for axis in ((0, 0, 1), (0, 1, 0))]
     model = save(tmp_path, "holey.stl", b.vertices, np.delete(faces.faces, gone, axis=0))
     out = tmp_path / "plan"
-    run = subprocess.run([sys.executable, "-m", "ambots", "plan", model, "--arms", "kinova,ur10",
-                          "--out", str(out)], capture_output=True, text=True, timeout=900)
-    assert run.returncode == 0, run.stdout + run.stderr
-    assert "repaired: 3 holes closed" in run.stdout and "repaired mesh: model_repaired.stl" in run.stdout
-    rep = json.loads((out / "report.json").read_text())
-    assert rep["finished"] and rep["collisions"] == {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}
+    stdout, rep = plan_both_arms(model, out)
+    assert "repaired: 3 holes closed" in stdout and "repaired mesh: model_repaired.stl" in stdout
     assert set(rep["arms"]) == {"kinova", "ur10"}
     for arm in ("kinova", "ur10"):
         assert os.path.getsize(out / (arm + ".gcode")) > 0 and rep["arms"][arm]["extrude_mm"] > 0
@@ -429,12 +425,8 @@ def test_a_crossing_repair_is_written_to_the_job_folder_and_planned_without_cont
     mesh, intended = slotted(1.5)
     model = save(tmp_path, "poke.stl", mesh.vertices, mesh.faces)
     out = tmp_path / "plan"
-    run = subprocess.run([sys.executable, "-m", "ambots", "plan", model, "--arms", "kinova,ur10",
-                          "--out", str(out)], capture_output=True, text=True, timeout=900)
-    assert run.returncode == 0, run.stdout + run.stderr
-    assert "repaired: surface crossed itself" in run.stdout and "repaired mesh: model_repaired.stl" in run.stdout
-    rep = json.loads((out / "report.json").read_text())
-    assert rep["finished"] and rep["collisions"] == {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}
+    stdout, rep = plan_both_arms(model, out)
+    assert "repaired: surface crossed itself" in stdout and "repaired mesh: model_repaired.stl" in stdout
     r = json.loads((out / "job.json").read_text())["repair"]
     assert r["crossing_pairs"] > 0 and r["path"] == "model_repaired.stl"
     assert r["volume_before_mm3"] == pytest.approx(intended, rel=1e-3)
@@ -442,3 +434,14 @@ def test_a_crossing_repair_is_written_to_the_job_folder_and_planned_without_cont
     assert repaired.is_watertight and repaired.volume == pytest.approx(intended, rel=MAX_VOLUME_CHANGE)
     assert sum(trimesh.load(str(out / (a + ".stl"))).volume for a in ("kinova", "ur10")) == \
         pytest.approx(repaired.volume, rel=1e-3)
+
+
+def plan_both_arms(model, out):
+    """``python -m ambots plan`` of ``model`` on both arms into ``out``: (its
+    output, report.json), the print finished without a contact."""
+    run = subprocess.run([sys.executable, "-m", "ambots", "plan", model, "--arms", "kinova,ur10",
+                          "--out", str(out)], capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stdout + run.stderr
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["finished"] and rep["collisions"] == {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}
+    return run.stdout, rep
