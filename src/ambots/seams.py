@@ -40,7 +40,8 @@ Units: millimetres in the bed frame (the G-code frame).
 import numpy as np
 
 __all__ = ["SEAMS", "seam_kind", "interlock_depth_mm", "interlock_pieces", "seam_samples", "bonded_mask",
-           "bonded_share", "deposit_beads_mm"]
+           "bonded_share", "deposit_beads_mm", "lap_order", "seam_setup", "seam_figures", "beads_in_bed_mm",
+           "placed_model"]
 
 #: the seams a job takes (``overlap``: the issue's name of the interlock)
 SEAMS = ("straight", "interlock", "overlap")
@@ -187,12 +188,10 @@ def deposit_beads_mm(deposit, bed_pose):
     m) in the bed frame, mm: (starts (K, 3), ends (K, 3), widths (K,),
     heights (K,)), the arms' beads together; the pieces of one extrusion
     joined (:func:`_join_pieces`)."""
-    T = np.linalg.inv(np.asarray(bed_pose, dtype=float))
     out = []
     for arm in deposit.arms:
         b = deposit.segments(arm)
-        s = (b.starts @ T[:3, :3].T + T[:3, 3]) * 1e3
-        e = (b.ends @ T[:3, :3].T + T[:3, 3]) * 1e3
+        s, e = _bed_mm(b.starts, bed_pose), _bed_mm(b.ends, bed_pose)
         out.append(_join_pieces(s, e, b.area / b.height * 1e3, b.height * 1e3))
     if not out:
         z = np.zeros((0, 3))
@@ -290,21 +289,13 @@ def bonded_mask(points, normal, beads, margin_mm, chunk=2000):
     return out
 
 
-def bonded_share(model, parts, deposit, bed_pose, z_tops, heights, bead_width, step_mm=0.2):
-    """{"a/b": {"bonded_share": 0..1, "samples": M}} for every seam between
-    two of ``parts`` (:class:`ambots.partition.Part`) in ``deposit`` (world
-    frame, m; the bed's pose ``bed_pose`` 4x4 maps the bed frame to it):
-    points of the seam face (:func:`seam_samples`) bonded by one bead with a
-    margin of a quarter ``bead_width`` (mm) on both sides
+def bonded_share(model, planes, deposit, bed_pose, z_tops, heights, bead_width, step_mm=0.2):
+    """{"a/b": {"bonded_share": 0..1, "samples": M}} for every seam of
+    ``planes`` ({(a, b): (n, o)}, :func:`ambots.coordinate.zones.seam_planes`)
+    in ``deposit`` (world frame, m; the bed's pose ``bed_pose`` 4x4 maps the
+    bed frame to it): points of the seam face (:func:`seam_samples`) bonded
+    by one bead with a margin of a quarter ``bead_width`` (mm) on both sides
     (:func:`bonded_mask`)."""
-    from ambots.coordinate.zones import seam_planes
-    live = [p for p in parts if not p.empty]
-    if len(live) < 2:
-        return {}
-    return _bonded(model, seam_planes(live), deposit, bed_pose, z_tops, heights, bead_width, step_mm)
-
-
-def _bonded(model, planes, deposit, bed_pose, z_tops, heights, bead_width, step_mm=0.2):
     beads = deposit_beads_mm(deposit, bed_pose)
     out = {}
     for (a, b), (P, n) in seam_samples(model, planes, z_tops, heights, step_mm).items():
@@ -345,9 +336,14 @@ def seam_setup(parts, seam, settings, z_max_mm):
 def beads_in_bed_mm(by_arm, bed_pose):
     """{arm: (p0, p1, t)} with p0, p1 (K, 3) in the world frame (m) -> the
     same in the bed frame (mm), as :func:`lap_order` takes them."""
+    return {n: (_bed_mm(p0, bed_pose), _bed_mm(p1, bed_pose), np.asarray(t, dtype=float))
+            for n, (p0, p1, t) in by_arm.items()}
+
+
+def _bed_mm(P, bed_pose):
+    """World points (K, 3), m -> the bed frame, mm."""
     T = np.linalg.inv(np.asarray(bed_pose, dtype=float))
-    bed = lambda P: (np.asarray(P, dtype=float) @ T[:3, :3].T + T[:3, 3]) * 1e3
-    return {n: (bed(p0), bed(p1), np.asarray(t, dtype=float)) for n, (p0, p1, t) in by_arm.items()}
+    return (np.asarray(P, dtype=float) @ T[:3, :3].T + T[:3, 3]) * 1e3
 
 
 def placed_model(job_dir, names):
@@ -379,8 +375,8 @@ def seam_figures(setup, model, deposit, bed_pose, by_arm=None):
     planes = {tuple(k.split("/")): (np.asarray(v["normal"], dtype=float), float(v["offset_mm"]))
               for k, v in setup["planes"].items()}
     z_tops = np.asarray(setup["z_tops_mm"], dtype=float)
-    shares = _bonded(model, planes, deposit, bed_pose, z_tops, np.asarray(setup["heights_mm"], dtype=float),
-                     setup["bead_width_mm"])
+    shares = bonded_share(model, planes, deposit, bed_pose, z_tops, np.asarray(setup["heights_mm"], dtype=float),
+                          setup["bead_width_mm"])
     order = lap_order(by_arm, planes, setup["reach_mm"], z_tops) if by_arm is not None else {}
     return shares, order
 
