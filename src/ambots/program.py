@@ -49,7 +49,15 @@ def parse_directive(line, path="<string>", lineno=0):
         raise GCodeError(path, lineno, line, "bad directive: %s" % exc.message)
 
 
+#: a line that starts with one of these (no blank before) is neither an
+#: A-series line nor a directive: its first command word is G or M (most of
+#: a slicer's lines, skipped without the full check)
+_SAFE_FIRST = frozenset("GM")
+
+
 def _unsafe(line):
+    if line[:1] in _SAFE_FIRST:
+        return False
     return is_a_series_line(line) or is_directive(line)
 
 

@@ -118,13 +118,53 @@ def _phases(arms, segs_by, planes, bounds, k, colour, n_layers):
     phases = {}
     for a in arms:
         for layer in range(n_layers):
-            segs = [p for s in segs_by.get((a.name, layer), [])
-                    for p in _split_at_bands(s, planes[a.name], bounds[a.name])]
-            band = _band_of(segs, planes[a.name], bounds[a.name]) if segs else np.zeros(0, dtype=int)
+            segs, mids = _cut_layer(segs_by.get((a.name, layer), []), planes[a.name], bounds[a.name])
+            band = _band_of(mids, planes[a.name], bounds[a.name]).tolist()
+            by_band = [[] for _ in range(k)]
+            for s, b in zip(segs, band):
+                by_band[b].append(s)
             for b in range(k):
-                phases[a.name, layer, _phase_of(b, colour[a.name], layer, k)] = (
-                    b, [s for s, bb in zip(segs, band) if bb == b])
+                phases[a.name, layer, _phase_of(b, colour[a.name], layer, k)] = (b, by_band[b])
     return phases
+
+
+def _cut_layer(segs, planes, t):
+    """A layer's segments cut at the band edges ``t`` (:func:`_split_at_bands`)
+    and the pieces' midpoints (P, 3).  Only the segments that an edge comes
+    within 1e-6 mm of are cut one by one: on the others the cut would find
+    nothing (a layer has tens of thousands of segments on a large model, and
+    the per-segment numpy calls were most of the coordination's time)."""
+    if not segs:
+        return [], np.zeros((0, 3))
+    P0 = np.array([s.start for s in segs], dtype=float)
+    P1 = np.array([s.end for s in segs], dtype=float)
+    mids = np.add(P0, P1) / 2.0
+    if not planes or len(t) < 2:
+        return list(segs), mids
+    flag = np.zeros(len(segs), dtype=bool)
+    for n, off in planes:
+        fa, fb = P0 @ np.asarray(n, dtype=float) - off, P1 @ np.asarray(n, dtype=float) - off
+        lo, hi = np.minimum(fa, fb) - 1e-6, np.maximum(fa, fb) + 1e-6
+        for edge in t[1:]:
+            flag |= (lo < edge) & (edge < hi)
+    if not flag.any():
+        return list(segs), mids
+    out, src, extra = [], [], []
+    for i, (s, f) in enumerate(zip(segs, flag.tolist())):
+        if not f:
+            out.append(s)
+            src.append(i)
+            continue
+        for piece in _split_at_bands(s, planes, t):
+            out.append(piece)
+            src.append(-1)
+            extra.append(np.add(piece.start, piece.end) / 2.0)
+    src = np.array(src)
+    cut = src < 0
+    out_mids = np.empty((len(out), 3))
+    out_mids[~cut] = mids[src[~cut]]
+    out_mids[cut] = np.array(extra, dtype=float).reshape(-1, 3)
+    return out, out_mids
 
 
 def _split_at_bands(seg, planes, t):
@@ -148,14 +188,16 @@ def _split_at_bands(seg, planes, t):
     return cut_segment(seg, cuts)
 
 
-def _band_of(segs, planes, t):
-    """Band index (S,) of each segment from its midpoint's distance to the
-    nearest seam; band i is [t[i], t[i+1]) (mm), the last band the rest."""
+def _band_of(mids, planes, t):
+    """Band index (S,) of each segment from its midpoint ``mids`` (S, 3)
+    distance to the nearest seam; band i is [t[i], t[i+1]) (mm), the last
+    band the rest."""
     k = len(t)
     if not planes:
-        return np.full(len(segs), k - 1)
-    mid = np.array([(np.add(s.start, s.end)) / 2.0 for s in segs], dtype=float)
-    d = distance_to_planes(mid, planes).min(axis=1)
+        return np.full(len(mids), k - 1)
+    if not len(mids):
+        return np.zeros(0, dtype=int)
+    d = distance_to_planes(mids, planes).min(axis=1)
     return np.clip(np.searchsorted(np.asarray(t), d, side="right") - 1, 0, k - 1).astype(int)
 
 

@@ -8,7 +8,7 @@ t[0] = 0), band k-1 the rest.  In phase i of a layer one colour prints
 band i while the other prints band k-1-i (:func:`_phase_of`)."""
 import numpy as np
 
-from ambots.coordinate.steps import seg_time
+from ambots.coordinate.steps import seg_times
 from ambots.coordinate.zones import distance_to_planes
 
 __all__ = ["choose_bands", "band_stats", "PIECE_S"]
@@ -46,7 +46,7 @@ def band_stats(arms, segs_by, planes, n_layers):
                 continue
             P0 = np.array([s.start for s in segs], dtype=float)
             P1 = np.array([s.end for s in segs], dtype=float)
-            dur = np.array([seg_time([s]) for s in segs])
+            dur = seg_times(P0, P1, [s.e for s in segs], [s.feedrate for s in segs])
             pieces = np.maximum(1, np.ceil(np.linalg.norm(P1 - P0, axis=1) / 5.0)).astype(int)
             seg = np.repeat(np.arange(len(segs)), pieces)
             frac = (np.arange(len(seg)) - np.repeat(np.cumsum(pieces) - pieces, pieces) + 0.5) / pieces[seg]
@@ -93,7 +93,7 @@ def _estimate(arms, stats, colour, n_layers, k, t):
     """Estimated makespan (s) of k bands with edges ``t`` {arm: (k,)}: per
     layer, the sum over phases of the slowest arm's band, every piece of
     path a band cuts out counted with PIECE_S, and half a second a barrier."""
-    return _estimate_groups(arms, _layer_groups(arms, stats, n_layers), colour, k, t)
+    return _estimate_groups(_Groups(arms, _layer_groups(arms, stats, n_layers), colour), k, t)
 
 
 def _layer_groups(arms, stats, n_layers):
@@ -114,24 +114,48 @@ def _layer_groups(arms, stats, n_layers):
     return [tuple(g) for g in groups.values()]
 
 
-def _estimate_groups(arms, groups, colour, k, t):
-    """:func:`_estimate` on :func:`_layer_groups`."""
-    est = 0.0
-    for count, layer, by_arm in groups:
-        phase_t = np.zeros(k)
+class _Groups:
+    """:func:`_layer_groups` laid out for :func:`_estimate_groups`: per arm,
+    the pieces of all groups one after the other (distances, durations,
+    follows, group index, first piece of each group) and whether the arm
+    sweeps away from the seam in each group, so an estimate is a few numpy
+    calls whatever the number of layers."""
+
+    def __init__(self, arms, groups, colour):
+        self.counts = [count for count, _, _ in groups]
+        self.n = len(groups)
+        self.arms = {}
         for a in arms:
-            if a.name not in by_arm:
+            rows = [(g, by_arm[a.name]) for g, (_, _, by_arm) in enumerate(groups) if a.name in by_arm]
+            if not rows:
                 continue
-            d, dur, follows = by_arm[a.name]
-            band = np.clip(np.searchsorted(t[a.name], d, side="right") - 1, 0, k - 1)
-            # every piece of path a band cuts out starts and ends at rest, with a travel
-            fresh = ~follows
-            fresh[1:] |= band[1:] != band[:-1]
-            per_band = (np.bincount(band, weights=dur, minlength=k)
-                        + PIECE_S * np.bincount(band, weights=fresh, minlength=k))
-            phases = np.array([_phase_of(b, colour[a.name], layer, k) for b in range(k)])
-            np.maximum.at(phase_t, phases, per_band)
-        est += count * (phase_t.sum() + k * 0.5)          # a barrier costs about half a second
+            sizes = [len(st[0]) for _, st in rows]
+            group = np.repeat([g for g, _ in rows], sizes)
+            first = np.zeros(len(group), dtype=bool)
+            first[np.cumsum([0] + sizes[:-1])] = True
+            away = np.array([(colour[a.name] + layer) % 2 == 0 for _, layer, _ in groups])
+            self.arms[a.name] = (np.concatenate([st[0] for _, st in rows]), np.concatenate([st[1] for _, st in rows]),
+                                 np.concatenate([st[2] for _, st in rows]), group, first, away)
+
+
+def _estimate_groups(groups, k, t):
+    """:func:`_estimate` on :class:`_Groups` (the same sums in the same order
+    as one layer group at a time)."""
+    phase_t = np.zeros((groups.n, k))
+    for name, (d, dur, follows, group, first, away) in groups.arms.items():
+        band = np.clip(np.searchsorted(t[name], d, side="right") - 1, 0, k - 1)
+        # every piece of path a band cuts out starts and ends at rest, with a travel
+        fresh = ~follows
+        change = np.zeros(len(band), dtype=bool)
+        change[1:] = band[1:] != band[:-1]
+        fresh |= change & ~first
+        cell = group * k + band
+        per_band = (np.bincount(cell, weights=dur, minlength=groups.n * k)
+                    + PIECE_S * np.bincount(cell, weights=fresh, minlength=groups.n * k)).reshape(groups.n, k)
+        np.maximum(phase_t, np.where(away[:, None], per_band, per_band[:, ::-1]), out=phase_t)
+    est = 0.0
+    for count, row in zip(groups.counts, phase_t):
+        est += count * (row.sum() + k * 0.5)          # a barrier costs about half a second
     return est
 
 
@@ -144,14 +168,14 @@ def choose_bands(arms, stats, n_layers, zone_mm, colour, adjacent, pair_zone):
     global _last_bands
     names = [a.name for a in arms]
     far, work = _reach(arms, stats, n_layers)
-    groups = _layer_groups(arms, stats, n_layers)
+    groups = _Groups(arms, _layer_groups(arms, stats, n_layers), colour)
     best = {}
     for k in range(2, 13):
         for kind, t in (("uniform", _uniform_bounds(arms, far, zone_mm, k)),
                         ("balanced", _balanced_bounds(names, work, adjacent, pair_zone, k))):
             if t is None:
                 continue
-            est = _estimate_groups(arms, groups, colour, k, t)
+            est = _estimate_groups(groups, k, t)
             if kind not in best or est < best[kind][0] - 1e-9:
                 best[kind] = (est, k, t)
     kind = "balanced" if "balanced" in best and best["balanced"][0] < _BALANCED_GAIN * best["uniform"][0] else "uniform"

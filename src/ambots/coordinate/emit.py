@@ -137,7 +137,7 @@ class _Writer:
                     self.emit("G1 E%.5f F%.0f" % (s.e, s.feedrate or self.retract_feed))
                     self.retracted = s.e < 0
                 continue
-            if self.pos is None or not close(self.pos, s.start, atol=1e-6):
+            if self.pos is None or (self.pos != s.start and not close(self.pos, s.start, atol=1e-6)):
                 self.travel_to(s.start)
             x, y, z = s.end
             if s.extrude:

@@ -22,7 +22,7 @@ import numpy as np
 from ambots.gcode import Segment, parse_gcode_text
 from ambots.program import sanitize_gcode
 
-__all__ = ["Sliced", "read_sliced", "Wait", "Step", "END", "cut_segment", "seg_time"]
+__all__ = ["Sliced", "read_sliced", "Wait", "Step", "END", "cut_segment", "seg_time", "seg_times"]
 
 
 class Sliced(NamedTuple):
@@ -94,12 +94,20 @@ def cut_segment(seg, cuts):
 
 def seg_time(segs):
     """Seconds of ``segs`` at their feedrates (E-only moves at their E speed)."""
-    t = 0.0
-    for s in segs:
-        L = float(np.linalg.norm(np.subtract(s.end, s.start)))
-        f = s.feedrate if s.feedrate > 0 else 1800.0
-        t += (L if L > 0 else abs(s.e)) / f * 60.0
-    return t
+    if not segs:
+        return 0.0
+    return float(sum(seg_times([s.start for s in segs], [s.end for s in segs], [s.e for s in segs],
+                               [s.feedrate for s in segs]).tolist()))
+
+
+def seg_times(starts, ends, e, feedrate):
+    """Seconds (S,) of each segment, from its ends (S, 3) mm, E (S,) mm and
+    feedrate (S,) mm/min, at its feedrate (1800 mm/min if none was set):
+    its length, or |E| for an E-only move."""
+    D = np.subtract(np.asarray(ends, dtype=float).reshape(-1, 3), np.asarray(starts, dtype=float).reshape(-1, 3))
+    L = np.linalg.norm(D, axis=1)
+    f = np.asarray(feedrate, dtype=float)
+    return np.where(L > 0, L, np.abs(np.asarray(e, dtype=float))) / np.where(f > 0, f, 1800.0) * 60.0
 
 
 def _order_runs(segs, pos):
