@@ -499,3 +499,32 @@ def test_robot_id_0_is_an_id_like_any_other(cell, job):
             shifted = [re.sub(r"\b([RW])(\d+)\b", lambda m: m.group(1) + str(int(m.group(2)) - 1), line)
                        if line.startswith((";@", "; ambots program")) else line for line in want[name].lines]
             assert got[name].lines == shifted, (mode, name)
+
+
+def test_the_emitters_events_are_the_parsers(cell, job, n_arm_jobs):
+    """A job times its programs on the events the emitter kept while it wrote
+    them, not on a parse of the text: they must be the parser's, event for
+    event (banded, sequential, one arm with the others parked, the timeline
+    of three and four arms, a row along a beam)."""
+    from ambots.coordinate.emit import Emitter
+    parts, sliced = job
+    plans = [build_programs(sliced, parts, cell), build_programs(sliced, parts, cell, mode="sequential"),
+             build_programs({parts[0].arm.name: sliced[parts[0].arm.name]}, parts[:1], cell, idle=[parts[1].arm])]
+    plans += [v[3] for v in n_arm_jobs.values()]
+    checked = 0
+    for programs in plans:
+        for name, program in programs.items():
+            assert program.events is not None
+            parsed = list(parse_gcode_text(program.text, name + ".gcode"))
+            assert program.parse() == parsed
+            checked += len(parsed)
+    assert checked > 5000
+    # lines changed after the emitter wrote them: the text is parsed again
+    program = plans[0][parts[0].arm.name]
+    program.lines.append("G1 X1.000 Y2.000 Z3.000 E0.10000 F1200")
+    again = program.parse()
+    assert again == list(parse_gcode_text(program.text, "x.gcode"))
+    assert again[-1].end == (1.0, 2.0, 3.0) and again[-1].line == len(program.lines)
+    # a line the events cannot follow (a line break inside a header line): no events
+    em = Emitter(parts[0].arm, "concurrent", ["; a\nG1 X5"])
+    assert em.events() is None

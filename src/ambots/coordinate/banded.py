@@ -78,7 +78,8 @@ def banded_programs(arms, read, park, n_layers, zone_mm, planes, colour, adjacen
         em.step(Step(park=park[a.name]))           # lift clear of the part, then go to the park position
         emitters[a.name] = em
     resolve_waits(emitters)
-    return {a.name: ArmProgram(a, "concurrent", emitters[a.name].lines, read[a.name][0], n_layers, k, start_first=True)
+    return {a.name: ArmProgram(a, "concurrent", emitters[a.name].lines, read[a.name][0], n_layers, k, start_first=True,
+                                 events=emitters[a.name].events())
             for a in arms}
 
 

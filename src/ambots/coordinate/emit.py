@@ -9,10 +9,13 @@ reports), and :func:`resolve_waits` turns every wait into the ``;@A9``
 directive naming the line of the other arm's program it waits for, once
 every program is written."""
 from dataclasses import dataclass, field
-from typing import List
+from typing import List, Optional
+
+import math
 
 import numpy as np
 
+from ambots.gcode import _Z_EPS, GCodeWarning, Segment, _new_segment
 from ambots.program import directive
 from ambots.protocol import MoveTo, SendPosition, WaitFor
 
@@ -32,6 +35,9 @@ class ArmProgram:
     layers: int = 0
     phases: int = 1
     start_first: bool = True                         #: the front end starts this arm with A1
+    #: the events of :attr:`lines` as the emitter wrote them (:meth:`_Events.result`),
+    #: or None: :meth:`parse` then parses the text
+    events: Optional[tuple] = None
 
     @property
     def text(self):
@@ -40,9 +46,98 @@ class ArmProgram:
     def parse(self):
         """The program's G-code events (a list, :func:`ambots.gcode.parse_gcode_text`
         of :attr:`text` as ``<arm>.gcode``): parse it once and pass the list on
-        (:func:`ambots.estimate.estimate_programs`, :func:`ambots.gcode.summarize`)."""
+        (:func:`ambots.estimate.estimate_programs`, :func:`ambots.gcode.summarize`).
+        A program from the emitter has them already (the same events: the
+        emitter keeps the parser's state as it writes; tests compare the two),
+        unless its lines were changed since."""
         from ambots.gcode import parse_gcode_text
+        if self.events is not None:
+            events, n_lines, digest = self.events
+            if len(self.lines) == n_lines and hash(self.text) == digest:
+                return list(events)
         return list(parse_gcode_text(self.text, "%s.gcode" % self.arm.name))
+
+
+class _Events:
+    """The G-code events of the lines an emitter writes, as
+    :func:`ambots.gcode.iter_gcode` would read them (its state for the
+    canonical lines written here: absolute XYZ, relative E after the
+    header's ``G21``/``G90``/``M83``, layer changes from ``;LAYER_CHANGE``),
+    so a job need not parse its own programs again.  A number the parser
+    would refuse, a line break inside a line, or a line this does not know
+    makes :meth:`result` None (the text is parsed then, and the parser
+    reports the error)."""
+
+    def __init__(self):
+        from ambots.gcode import MAX_ABS_MM
+        self.lim = MAX_ABS_MM
+        self.x = self.y = self.z = self.e = 0.0
+        self.feed = 0.0
+        self.rel_e = False
+        self.layer, self.layer_z, self.markers = -1, -math.inf, False
+        self.warned = False
+        self.out = []
+        self.ok = True
+
+    def line(self, line):
+        """A line that is not a move: a comment (a layer change?) or the header's modes."""
+        from ambots.gcode import _layer_marker
+        if line is None:                      # a wait, written later as a directive (a comment)
+            return
+        if any(c in line for c in _BREAKS):
+            self.ok = False
+        elif line[:1] == ";":
+            if _layer_marker(line[1:]):
+                self.layer += 1
+                self.markers = True
+        elif line == "G90":
+            self.rel_e = False
+        elif line == "M83":
+            self.rel_e = True
+        elif line != "G21":
+            self.ok = False
+
+    def move(self, lineno, x=None, y=None, z=None, e=None, f=None):
+        """A G0/G1 line at ``lineno`` with these words (the values before
+        formatting: X, Y, Z to 3 decimals, E to 5, F to 0, as written)."""
+        lim = self.lim
+        ox, oy, oz, oe = self.x, self.y, self.z, self.e
+        nx = ox if x is None else round(float(x), 3)
+        ny = oy if y is None else round(float(y), 3)
+        nz = oz if z is None else round(float(z), 3)
+        ne = oe
+        if e is not None:
+            v = round(float(e), 5)
+            if not self.rel_e or not -lim <= v <= lim:
+                self.ok = False
+            ne = oe + v
+        if f is not None:
+            v = round(float(f), 0)
+            if not 0 < v <= lim:
+                self.ok = False
+            self.feed = v
+        if not (-lim <= nx <= lim and -lim <= ny <= lim and -lim <= nz <= lim):
+            self.ok = False
+        de = ne - oe
+        if de > 0.0 and not self.markers and (nx != ox or ny != oy) and abs(nz - self.layer_z) > _Z_EPS:
+            self.layer += 1
+            self.layer_z = nz
+        if self.feed == 0.0 and not self.warned and (nx != ox or ny != oy or nz != oz or de):
+            self.warned = True
+            self.out.append(GCodeWarning(lineno, "move before any feedrate F; its time is not counted"))
+        self.out.append(_new_segment(Segment, ((ox, oy, oz), (nx, ny, nz), de, self.feed, de > 0.0, lineno,
+                                               self.layer)))
+        self.x, self.y, self.z, self.e = nx, ny, nz, ne
+
+    def result(self, lines):
+        """(events, number of lines, hash of the text) for :class:`ArmProgram`, or None."""
+        if not self.ok:
+            return None
+        return tuple(self.out), len(lines), hash("\n".join(lines) + "\n")
+
+
+#: characters that end a line for :meth:`str.splitlines` (the parser's)
+_BREAKS = "\n\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029"
 
 
 class _Writer:
@@ -66,15 +161,36 @@ class _Writer:
         #: built-in slicer's default: two more moves from rest to rest per travel
         #: under the one timing law, about 0.1 s each)
         self.hop_mm = hop_mm
+        #: the events of the lines written, as the parser would read them
+        self.events = _Events()
 
     def emit(self, line):
+        """A line that is not a move (a comment, a directive, the header's modes)."""
         self.lines.append(line)
+        self.events.line(line)
+
+    def move(self, code, x=None, y=None, z=None, e=None, f=None):
+        """A ``G0``/``G1`` line with these words, in the order X Y Z E F (mm,
+        3 decimals; E 5; F mm/min, none)."""
+        words = [code]
+        if x is not None:
+            words.append("X%.3f" % x)
+        if y is not None:
+            words.append("Y%.3f" % y)
+        if z is not None:
+            words.append("Z%.3f" % z)
+        if e is not None:
+            words.append("E%.5f" % e)
+        if f is not None:
+            words.append("F%.0f" % f)
+        self.lines.append(" ".join(words))
+        self.events.move(len(self.lines), x, y, z, e, f)
 
     def travel_to(self, p, feed=None):
         if self.parked:
-            self.emit("G0 X%.3f Y%.3f Z%.3f F%.0f" % (p[0], p[1], p[2] + 10.0, feed or self.travel_feed))
-            self.emit("G0 Z%.3f" % p[2])
-            self.emit("G1 E%.5f F%.0f" % (self.retract_mm, self.retract_feed))
+            self.move("G0", p[0], p[1], p[2] + 10.0, f=feed or self.travel_feed)
+            self.move("G0", z=p[2])
+            self.move("G1", e=self.retract_mm, f=self.retract_feed)
             self.parked = self.retracted = False
             self.pos = tuple(p)
             return
@@ -82,22 +198,22 @@ class _Writer:
             return
         if (self.pos is not None and abs(self.pos[2] - p[2]) < 1e-6
                 and np.hypot(self.pos[0] - p[0], self.pos[1] - p[1]) < self.short_travel_mm):
-            self.emit("G0 X%.3f Y%.3f F%.0f" % (p[0], p[1], feed or self.travel_feed))
+            self.move("G0", p[0], p[1], f=feed or self.travel_feed)
         elif self.pos is not None:
             if not self.retracted:
-                self.emit("G1 E-%.5f F%.0f" % (self.retract_mm, self.retract_feed))
+                self.move("G1", e=-self.retract_mm, f=self.retract_feed)
             if self.hop_mm > 0 or abs(self.pos[2] - p[2]) > 1e-6:
                 lift = max(self.pos[2], p[2]) + self.hop_mm        # clear what was printed
-                self.emit("G0 Z%.3f F%.0f" % (lift, feed or self.travel_feed))
-                self.emit("G0 X%.3f Y%.3f F%.0f" % (p[0], p[1], feed or self.travel_feed))
+                self.move("G0", z=lift, f=feed or self.travel_feed)
+                self.move("G0", p[0], p[1], f=feed or self.travel_feed)
                 if lift != p[2]:
-                    self.emit("G0 Z%.3f" % p[2])
+                    self.move("G0", z=p[2])
             else:
-                self.emit("G0 X%.3f Y%.3f F%.0f" % (p[0], p[1], feed or self.travel_feed))
-            self.emit("G1 E%.5f F%.0f" % (self.retract_mm, self.retract_feed))
+                self.move("G0", p[0], p[1], f=feed or self.travel_feed)
+            self.move("G1", e=self.retract_mm, f=self.retract_feed)
             self.retracted = False
         else:
-            self.emit("G0 X%.3f Y%.3f Z%.3f F%.0f" % (p[0], p[1], p[2], feed or self.travel_feed))
+            self.move("G0", p[0], p[1], p[2], f=feed or self.travel_feed)
         self.pos = tuple(p)
 
     def approach(self, p, z_safe):
@@ -106,11 +222,11 @@ class _Writer:
         joint move of the firmware's planner, as the nozzle is not where
         the G-code was), then straight down; unretract if a park retracted."""
         feed = self.travel_feed
-        self.emit("G0 X%.3f Y%.3f Z%.3f F%.0f" % (p[0], p[1], max(float(z_safe), p[2]), feed))
+        self.move("G0", p[0], p[1], max(float(z_safe), p[2]), f=feed)
         if max(float(z_safe), p[2]) != p[2]:
-            self.emit("G0 Z%.3f F%.0f" % (p[2], feed))
+            self.move("G0", z=p[2], f=feed)
         if self.retracted:
-            self.emit("G1 E%.5f F%.0f" % (self.retract_mm, self.retract_feed))
+            self.move("G1", e=self.retract_mm, f=self.retract_feed)
         self.parked = self.retracted = False
         self.pos = tuple(p)
 
@@ -121,20 +237,21 @@ class _Writer:
         ends retracted (the slicer's last retraction) is not retracted twice."""
         if self.pos is not None and not self.parked:
             if not self.retracted:
-                self.emit("G1 E-%.5f F%.0f" % (self.retract_mm, self.retract_feed))
+                self.move("G1", e=-self.retract_mm, f=self.retract_feed)
             z = self.pos[2] + lift_mm if lift_to is None else max(float(lift_to), self.pos[2])
-            self.emit("G0 Z%.3f F%.0f" % (z, self.travel_feed))
+            self.move("G0", z=z, f=self.travel_feed)
         x, y, z = xyz
         self.emit(directive(MoveTo(arm.id, round(float(x), 3), round(float(y), 3), round(float(z), 3))))
         self.parked = self.pos is not None
         self.retracted = self.retracted or self.parked
 
     def segments(self, segs):
+        lines, move = self.lines, self.events.move
         for s in segs:
             moved = s.start != s.end
             if not moved:
                 if s.e:
-                    self.emit("G1 E%.5f F%.0f" % (s.e, s.feedrate or self.retract_feed))
+                    self.move("G1", e=s.e, f=s.feedrate or self.retract_feed)
                     self.retracted = s.e < 0
                 continue
             if self.pos is None or (self.pos != s.start and not close(self.pos, s.start, atol=1e-6)):
@@ -142,9 +259,12 @@ class _Writer:
             x, y, z = s.end
             if s.extrude:
                 self.retracted = False
-                self.emit("G1 X%.3f Y%.3f Z%.3f E%.5f F%.0f" % (x, y, z, s.e, s.feedrate))
+                lines.append("G1 X%.3f Y%.3f Z%.3f E%.5f F%.0f" % (x, y, z, s.e, s.feedrate))
+                move(len(lines), x, y, z, s.e, s.feedrate)
             else:
-                self.emit("G0 X%.3f Y%.3f Z%.3f F%.0f" % (x, y, z, s.feedrate or self.travel_feed))
+                f = s.feedrate or self.travel_feed
+                lines.append("G0 X%.3f Y%.3f Z%.3f F%.0f" % (x, y, z, f))
+                move(len(lines), x, y, z, None, f)
             self.pos = s.end
 
 
@@ -185,6 +305,11 @@ class Emitter:
     @property
     def pos(self):
         return self.writer.pos
+
+    def events(self):
+        """The events of the program written (for :class:`ArmProgram`'s
+        ``events``; after :func:`resolve_waits`), or None."""
+        return self.writer.events.result(self.lines)
 
     def step(self, st):
         w = self.writer

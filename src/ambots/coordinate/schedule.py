@@ -10,7 +10,7 @@ from typing import Optional
 
 import numpy as np
 
-from ambots.coordinate.steps import _order_runs, seg_time
+from ambots.coordinate.steps import _order_runs, first_start, seg_time
 
 __all__ = ["Schedule", "Act"]
 
@@ -112,15 +112,22 @@ class Schedule:
     def candidates(self, n, t):
         """(chunk index, footprint, clashing arms, score) of arm n's chunks left in its layer."""
         out = []
-        for ci in self.left[n]:
-            ps, dmin, level = self.chunks[n, self.layer_of[n]][ci]
+        if not self.left[n]:
+            return out
+        chunks = self.chunks[n, self.layer_of[n]]
+        # how near the arm is to each chunk's ends, all at once
+        here = self.pos[n]
+        ends = np.array([chunks[ci][0][0].start for ci in self.left[n]] + [chunks[ci][0][-1].end for ci in self.left[n]],
+                        dtype=float)
+        d = np.linalg.norm(ends - here, axis=1).reshape(2, -1)
+        nearest = np.minimum(d[0], d[1]).tolist()
+        for ci, near in zip(self.left[n], nearest):
+            ps, dmin, level = chunks[ci]
             fp = np.minimum(dmin, self.pos_d[n])
             if self.first[n] or self.parked[n]:         # the joint move there, from home or the park position
-                p = np.asarray(_order_runs(ps, None)[0].start, dtype=float)
+                p = np.asarray(first_start(ps), dtype=float)
                 fp = np.minimum(fp, self.seams.path_d(n, None, p) if self.first[n] else
                                 self.seams.path_d(n, self.park[n], p + (0.0, 0.0, 10.0)))
-            near = min(float(np.linalg.norm(np.subtract(ps[0].start, self.pos[n]))),
-                       float(np.linalg.norm(np.subtract(ps[-1].end, self.pos[n]))))
             out.append((ci, fp, self.clash(n, fp, t), (level, near)))
         return out
 

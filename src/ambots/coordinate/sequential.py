@@ -203,5 +203,5 @@ def sequential_programs(arms, read, park, idle=(), mode="sequential", moves=None
         em = Emitter(arm, mode).steps(steps[arm.name])
         n_turns = sum(1 for _, j, _ in turns if j == i)
         programs[arm.name] = ArmProgram(arm, mode, em.lines, read[arm.name].removed, len(read[arm.name].layers),
-                                        max(1, n_turns), start_first=(i == 0))
+                                        max(1, n_turns), start_first=(i == 0), events=em.events())
     return programs

@@ -129,21 +129,28 @@ def _order_runs(segs, pos):
             runs.append([s])
     if len(runs) < 2:
         return [s for r in runs for s in r]
-    heads = np.array([r[0].start for r in runs], dtype=float)
-    tails = np.array([r[-1].end for r in runs], dtype=float)
-    left = np.ones(len(runs), dtype=bool)
+    R = len(runs)
+    # heads then tails; a run visited gets both ends at infinity (fewer numpy
+    # calls per run than masking: the timeline orders many pieces)
+    ends = np.array([r[0].start for r in runs] + [r[-1].end for r in runs], dtype=float)
     here = np.asarray(pos if pos is not None else runs[0][0].start, dtype=float)
     out = []
-    for _ in range(len(runs)):
-        dh = np.where(left, np.linalg.norm(heads - here, axis=1), np.inf)
-        dt = np.where(left, np.linalg.norm(tails - here, axis=1), np.inf)
-        i, j = int(np.argmin(dh)), int(np.argmin(dt))
-        if dt[j] < dh[i] - 1e-9:
-            left[j] = False
+    for _ in range(R):
+        d = np.linalg.norm(ends - here, axis=1)
+        i, j = int(np.argmin(d[:R])), int(np.argmin(d[R:]))
+        if d[R + j] < d[i] - 1e-9:
             out.extend(s._replace(start=s.end, end=s.start) for s in reversed(runs[j]))
-            here = heads[j]
+            here = ends[j].copy()
+            ends[j] = ends[R + j] = np.inf
         else:
-            left[i] = False
             out.extend(runs[i])
-            here = tails[i]
+            here = ends[R + i].copy()
+            ends[i] = ends[R + i] = np.inf
     return out
+
+
+def first_start(segs):
+    """Where :func:`_order_runs` of ``segs`` from nowhere (``pos`` None) starts:
+    the start of the first extruding segment that moves (its first run goes
+    first, as it is), or None if there is none."""
+    return next((s.start for s in segs if s.extrude and s.start != s.end), None)

@@ -68,7 +68,7 @@ def timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent,
         emitters[n] = Emitter(arm_of[n], "concurrent", extra).steps(_steps(acts[n], seams.names, park[n], n_layers))
     resolve_waits(emitters)
     return {n: ArmProgram(arm_of[n], "concurrent", emitters[n].lines, read[n][0], n_layers, bands + 1,
-                          start_first=True) for n in seams.names}
+                          start_first=True, events=emitters[n].events()) for n in seams.names}
 
 
 class Seams:
@@ -84,6 +84,7 @@ class Seams:
     def __init__(self, arms, read, planes, zones, adjacent, moves=None):
         names = self.names = [a.name for a in arms]
         self.moves = moves
+        self._path_d = {}
         self.nbrs = {n: [b for b in names if b in adjacent[n]] for n in names}
         self.where = {n: {b: self.nbrs[b].index(n) for b in self.nbrs[n]} for n in names}
         self.N = {n: np.array([planes[n, b][0] for b in self.nbrs[n]], dtype=float).reshape(-1, 3) for n in names}
@@ -104,8 +105,13 @@ class Seams:
     def path_d(self, n, a, b):
         """Closest distance to each adjacent arm's plane on arm n's joint move
         from ``a`` (None: home) to ``b`` below the printable height (inf: none)."""
-        P = self.moves.path(n, a, b) if self.moves is not None and len(self.N[n]) else np.zeros((0, 3))
-        return self.dist(n, P).min(axis=0) if len(P) else np.full(len(self.N[n]), np.inf)
+        key = (n, None if a is None else tuple(np.asarray(a, dtype=float).tolist()),
+               tuple(np.asarray(b, dtype=float).tolist()))
+        out = self._path_d.get(key)
+        if out is None:              # the schedule asks again for every chunk it weighs: kept
+            P = self.moves.path(n, a, b) if self.moves is not None and len(self.N[n]) else np.zeros((0, 3))
+            out = self._path_d[key] = self.dist(n, P).min(axis=0) if len(P) else np.full(len(self.N[n]), np.inf)
+        return out.copy()
 
 
 def _split_at(seg, N, O, W, bands):
