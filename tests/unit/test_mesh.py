@@ -327,3 +327,24 @@ def test_edge_counts_are_counted_again_after_a_change():
     uses = np.unique(mesh.edges_sorted, axis=0, return_counts=True)[1]
     assert (open_edge_count(mesh), nonmanifold_edge_count(mesh)) == ((uses == 1).sum(), (uses > 2).sum())
     assert nonmanifold_edge_count(mesh) > 0
+
+
+@pytest.mark.parametrize("name", sorted(MODELS) + ["sphere", "soup"])
+def test_weld_is_trimesh_merge_vertices(tmp_path, name):
+    """ambots.mesh.weld gives what trimesh's merge_vertices(merge_tex=True,
+    merge_norm=True) gives: the same vertices in the same order, the same triangles."""
+    from ambots.mesh import weld
+    rng = np.random.default_rng(3)
+    if name == "soup":                   # repeated points at several scales, unreferenced ones
+        pts = np.repeat(rng.random((60, 3)) * 10.0 ** rng.integers(-4, 3, (60, 1)), 3, axis=0)[rng.permutation(180)]
+        read = lambda: trimesh.Trimesh(pts, rng.integers(0, 170, (120, 3)), process=False)
+    else:
+        shape = trimesh.creation.icosphere(subdivisions=4, radius=30.0) if name == "sphere" else MODELS[name]()
+        path = write(tmp_path / "m.stl", shape)
+        read = lambda: trimesh.load(path, process=False)
+    ours, theirs = read(), read()
+    if name == "soup":
+        theirs = trimesh.Trimesh(ours.vertices.copy(), ours.faces.copy(), process=False)
+    weld(ours)
+    theirs.merge_vertices(merge_tex=True, merge_norm=True)
+    assert np.array_equal(ours.vertices, theirs.vertices) and np.array_equal(ours.faces, theirs.faces)
