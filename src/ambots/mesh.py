@@ -312,7 +312,9 @@ def _repair_crossings(mesh, report):
 def _fix_orientation(mesh):
     """Make winding consistent and outward; return how many faces flipped."""
     before = mesh.faces.copy()
-    trimesh.repair.fix_normals(mesh)
+    trimesh.repair.fix_winding(mesh)     # trimesh.repair.fix_normals, its volume without the inertia
+    if mesh.is_watertight and signed_volume(mesh) < 0.0:
+        mesh.invert()
     after = mesh.faces
     if len(before) != len(after):
         return 0
@@ -321,6 +323,17 @@ def _fix_orientation(mesh):
     for shift in range(3):
         same |= (np.roll(before, shift, axis=1) == after).all(axis=1)
     return int((~same).sum())
+
+
+def signed_volume(mesh):
+    """``mesh.volume``, the same number (trimesh's first integral, summed the
+    same way), without the centre of mass and inertia trimesh computes with it
+    (0.17 s for 300,000 triangles)."""
+    if not len(mesh.faces):
+        return float(mesh.volume)
+    tri = mesh.triangles
+    f1 = tri[:, 0, 0] + tri[:, 1, 0] + tri[:, 2, 0]
+    return float((mesh.triangles_cross[:, 0] * f1).sum() / 6.0)
 
 
 def _merge_overlapping_shells(mesh):
@@ -412,7 +425,7 @@ def validate_mesh(mesh, name=None):
         raise MeshError("%s: triangles are not consistently oriented" % name)
     extent = float(np.max(mesh.extents)) if len(mesh.vertices) else 0.0
     with np.errstate(divide="ignore", invalid="ignore"):  # trimesh divides by it
-        volume = float(mesh.volume)
+        volume = signed_volume(mesh)
     if not abs(volume) > 1e-9 * max(extent, 1e-12) ** 3:
         raise MeshError("%s: zero volume (the mesh is flat or degenerate)" % name)
     if volume < 0:

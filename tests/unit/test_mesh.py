@@ -348,3 +348,16 @@ def test_weld_is_trimesh_merge_vertices(tmp_path, name):
     weld(ours)
     theirs.merge_vertices(merge_tex=True, merge_norm=True)
     assert np.array_equal(ours.vertices, theirs.vertices) and np.array_equal(ours.faces, theirs.faces)
+
+
+@pytest.mark.parametrize("name", sorted(MODELS) + ["inside-out", "soup"])
+def test_signed_volume_is_trimesh_volume_to_the_bit(name):
+    from ambots.mesh import signed_volume
+    if name == "soup":
+        rng = np.random.default_rng(5)
+        mesh = trimesh.Trimesh(rng.random((30, 3)) * 100 - 50, rng.integers(0, 30, (40, 3)), process=False)
+    else:
+        mesh = MODELS["overhang" if name == "inside-out" else name]()
+        if name == "inside-out":
+            mesh.invert()
+    assert signed_volume(mesh) == float(mesh.volume)
