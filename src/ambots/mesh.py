@@ -92,7 +92,7 @@ def load_model(path, scale=1.0, max_triangles=DEFAULT_MAX_TRIANGLES, repair=True
     mesh.metadata[REPAIRS_KEY] = []
     # weld: STL stores every triangle's corners apart, OBJ splits vertices
     # by normal and texture; a closed surface needs shared vertices (the
-    # repair starts with it: once is enough, 0.3 s on 300,000 triangles)
+    # repair starts with it: once is enough, 0.2 s on 300,000 triangles)
     if not repair:
         weld(mesh)
     # trimesh divides by the volume (centre of mass) in several places:
