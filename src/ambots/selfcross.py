@@ -55,11 +55,12 @@ def crossing_pairs(mesh):
     # offset in the 2 x 2 x 2 block; larger boxes: cell by cell
     base = (c_lo[:, 0] * dims[1] + c_lo[:, 1]) * dims[2] + c_lo[:, 2]
     small = (span <= 2).all(axis=1)
+    by_cell = np.argsort(base)            # each pass's rows come sorted: one merge of runs below
     keys, owners = [], []
     for dx in (0, 1):
         for dy in (0, 1):
             for dz in (0, 1):
-                at = np.flatnonzero(small & (span[:, 0] > dx) & (span[:, 1] > dy) & (span[:, 2] > dz))
+                at = by_cell[(small & (span[:, 0] > dx) & (span[:, 1] > dy) & (span[:, 2] > dz))[by_cell]]
                 keys.append(base[at] + (dx * dims[1] + dy) * dims[2] + dz)
                 owners.append(at)
     large = np.flatnonzero(~small)
@@ -72,7 +73,9 @@ def crossing_pairs(mesh):
         keys.append((ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2])
         owners.append(owner)
     key, owner = np.concatenate(keys), np.concatenate(owners)
-    order = np.argsort(key)               # the order inside a cell does not matter: pairs are sorted below
+    # a merge of the sorted runs (timsort finds them); the order inside a cell
+    # does not matter: pairs are sorted below
+    order = np.argsort(key, kind="stable")
     key, owner = key[order], owner[order]
     starts = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]]))
     lengths = np.diff(np.concatenate([starts, [len(key)]]))
