@@ -174,12 +174,15 @@ def check_numbers(mesh, name, max_triangles=DEFAULT_MAX_TRIANGLES, scale=1.0):
     if n > max_triangles:
         raise MeshError("%s: %s triangles, more than the limit of %s" % (
             name, format(n, ","), format(max_triangles, ",")))
-    bad = ~np.isfinite(mesh.vertices).all(axis=1)
-    if bad.any():
+    vertices = np.asarray(mesh.vertices)
+    # the extremes first (one pass each); vertex by vertex only to word a refusal
+    low, high = (vertices.min(), vertices.max()) if vertices.size else (0.0, 0.0)
+    if not (np.isfinite(low) and np.isfinite(high)):
+        bad = ~np.isfinite(vertices).all(axis=1)
         raise MeshError("%s: %d vertices have NaN or infinite coordinates (first: vertex %d)"
                         % (name, bad.sum(), np.flatnonzero(bad)[0]))
-    bad = (np.abs(mesh.vertices) * scale > MAX_ABS_MM).any(axis=1)
-    if bad.any():
+    if max(-low, high) * scale > MAX_ABS_MM:
+        bad = (np.abs(vertices) * scale > MAX_ABS_MM).any(axis=1)
         raise MeshError("%s: %d vertices lie beyond +-%g mm (first: vertex %d); wrong unit "
                         "or broken file" % (name, bad.sum(), MAX_ABS_MM, np.flatnonzero(bad)[0]))
     if len(mesh.vertices) == 0 or mesh.faces.min() < 0 or mesh.faces.max() >= len(mesh.vertices):
