@@ -142,10 +142,10 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
     The weights are adjusted until the longest estimated print time is within
     ``tolerance`` of the shortest (or ``max_iter`` rounds).  With
     ``check_reach``, every vertex of every part must be reachable by its arm
-    with the nozzle down; otherwise :class:`MeshError` says which arm misses
-    by how much.  ``reach_cache``: a dict kept by the caller across calls on
-    the same model (a job's plans): a corner already checked for an arm is
-    not solved again.
+    with the nozzle down (:func:`_check_reach`: what is solved, and why that
+    is safe); otherwise :class:`MeshError` says which arm misses by how much.
+    ``reach_cache``: a dict kept by the caller across calls on the same model
+    (a job's plans): a point already checked for an arm is not solved again.
 
     ``seam``: ``straight``, or ``interlock`` / ``overlap`` (the same, see the
     module docstring): then ``layers`` = (z_tops, heights) (L,) mm, the
@@ -232,15 +232,17 @@ def _check_reach(cell, part, cache=None, exhaustive=False):
     between it and the set, and the corner of its cube farthest along that
     plane's normal is outside too: a vertex that misses by any amount leaves
     a corner of its cube unsolvable, so its cube is solved vertex by vertex.
-    Where the border is concave (the hole about the base's axis: radius R of
-    tens of centimetres), a sphere keeping out the eight corners of a cube of
-    side h pokes into it by less than h^2 / (4 R) (0.01 mm for h = 2 mm and
-    R = 100 mm): a vertex can miss by that much unnoticed.  The check of
-    vertices alone never looked between them (a face of a 200 mm box is
-    checked at its corners), this grid looks at most h * sqrt(3) away from
-    every vertex.  When the corners are more than a quarter of the vertices
-    (a coarse mesh, or a large one: a corner costs as much as a vertex), the
-    vertices are solved."""
+    Where the border is concave (the hole about the base's axis, of radius
+    R), a sphere keeping out the eight corners of a cube of side h pokes into
+    it by less than h^2 / (4 R) (0.01 mm for h = 2 mm and R = 100 mm): a
+    vertex can miss by that much unnoticed.  (A vertex in reach that the
+    solver from the home pose fails on, which solving every vertex refused,
+    is accepted when its cube's corners are solved.)  The check of vertices
+    alone never looked between them (a face of a 200 mm box is checked at
+    its corners), this grid looks at most h * sqrt(3) away from every vertex.
+    When the corners are more than a quarter of the vertices (a coarse mesh,
+    or a large one: a corner costs as much as a vertex), the vertices are
+    solved."""
     from ambots.kinematics import shared_arm_kinematics
     from ambots.workspace import down_in_base, world_to_base
     if part.empty:
