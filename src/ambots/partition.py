@@ -142,10 +142,10 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
     The weights are adjusted until the longest estimated print time is within
     ``tolerance`` of the shortest (or ``max_iter`` rounds).  With
     ``check_reach``, every vertex of every part must be reachable by its arm
-    with the nozzle down; otherwise :class:`MeshError` says which arm misses
-    by how much.  ``reach_cache``: a dict kept by the caller across calls on
-    the same model (a job's plans): a corner already checked for an arm is
-    not solved again.
+    with the nozzle down (:func:`_check_reach`: what is solved, and why that
+    is safe); otherwise :class:`MeshError` says which arm misses by how much.
+    ``reach_cache``: a dict kept by the caller across calls on the same model
+    (a job's plans): a point already checked for an arm is not solved again.
 
     ``seam``: ``straight``, or ``interlock`` / ``overlap`` (the same, see the
     module docstring): then ``layers`` = (z_tops, heights) (L,) mm, the
@@ -209,26 +209,79 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
     return parts
 
 
-def _check_reach(cell, part, cache=None):
+#: side (mm) of the cubes of the bed-frame grid of :func:`_check_reach`: a vertex
+#: whose cube has its eight corners in reach is not solved on its own
+REACH_CELL_MM = 2.0
+
+
+def _check_reach(cell, part, cache=None, exhaustive=False):
+    """Refuse (MeshError) a part whose arm cannot put the nozzle, pointing
+    down, on every vertex of the part: the message says how many of the
+    part's vertices miss, the worst one (bed frame, mm) and by how much.
+
+    The rule (what is solved): the vertices are binned in the cubes of a
+    grid of side :data:`REACH_CELL_MM` fixed to the bed (the same corners
+    for every part and plan of a job: ``cache``); the inverse kinematics
+    (from the home pose, as for a vertex) is solved at the corners of the
+    occupied cubes, and a vertex whose cube has its eight corners in reach
+    is in reach.  The vertices of the other cubes are solved one by one, so
+    every miss is found, counted and measured as by solving every vertex
+    (``exhaustive``: what the tests compare with).  Why it is safe: where
+    the set the nozzle reaches pointing down is convex around a cube (the
+    outer reach, a joint limit bounding it), a vertex outside it has a plane
+    between it and the set, and the corner of its cube farthest along that
+    plane's normal is outside too: a vertex that misses by any amount leaves
+    a corner of its cube unsolvable, so its cube is solved vertex by vertex.
+    Where the border is concave (the hole about the base's axis, of radius
+    R), a sphere keeping out the eight corners of a cube of side h pokes into
+    it by less than h^2 / (4 R) (0.01 mm for h = 2 mm and R = 100 mm): a
+    vertex can miss by that much unnoticed.  (A vertex in reach that the
+    solver from the home pose fails on, which solving every vertex refused,
+    is accepted when its cube's corners are solved.)  The check of vertices
+    alone never looked between them (a face of a 200 mm box is checked at
+    its corners), this grid looks at most h * sqrt(3) away from every vertex.
+    When the corners are more than a quarter of the vertices (a coarse mesh,
+    or a large one: a corner costs as much as a vertex), the vertices are
+    solved."""
     from ambots.kinematics import shared_arm_kinematics
     from ambots.workspace import down_in_base, world_to_base
     if part.empty:
         return
     mesh = part.manifold.to_mesh()
-    v = np.asarray(mesh.vert_properties)[:, :3] * MM                 # bed frame, m
-    world = v @ cell.bed.pose[:3, :3].T + cell.bed.pose[:3, 3]
+    props = np.asarray(mesh.vert_properties)[:, :3]
+    v = props * MM                                                   # bed frame, m
+    to_world = lambda P: P @ cell.bed.pose[:3, :3].T + cell.bed.pose[:3, 3]
     arm = part.arm
     kin = shared_arm_kinematics(arm)
     solve = lambda W: kin.ik_batch(world_to_base(arm, W), np.asarray(arm.profile.home), down_in_base(arm))[1:]
-    if cache is None:
-        ok, err = solve(world)
-    else:
-        ok, err = _cached_reach(cache.setdefault((arm.name, id(kin), id(cell)), {}), world, solve)
+    known = None if cache is None else cache.setdefault((arm.name, id(kin), id(cell)), {})
+    reach = solve if known is None else (lambda W: _cached_reach(known, W, solve))
+    todo = np.ones(len(v), dtype=bool)                               # the vertices to solve
+    if not exhaustive:
+        # one integer per grid point (21 bits an axis: +-2 km at 2 mm), sorting integers, not rows
+        cube = np.floor(np.asarray(props, dtype=np.float64) / REACH_CELL_MM).astype(np.int64) + _GRID_HALF
+        cubes, of_vertex = np.unique((cube[:, 0] << 42) | (cube[:, 1] << 21) | cube[:, 2], return_inverse=True)
+        corners, of_corner = np.unique((cubes[:, None] + _CUBE_CORNERS[None]).ravel(), return_inverse=True)
+        if 4 * len(corners) <= len(v):
+            xyz = np.stack([corners >> 42, (corners >> 21) & _GRID_MASK, corners & _GRID_MASK], axis=1) - _GRID_HALF
+            ok_c = reach(to_world(xyz * (REACH_CELL_MM * MM)))[0]
+            cube_ok = ok_c[of_corner.reshape(-1)].reshape(-1, 8).all(axis=1)
+            todo = ~cube_ok[of_vertex.reshape(-1)]
+    ok, err = np.ones(len(v), dtype=bool), np.zeros(len(v))
+    if todo.any():
+        ok[todo], err[todo] = reach(to_world(v[todo]))
     if not ok.all():
         worst = int(np.argmax(np.where(ok, -1.0, err)))
         raise MeshError("the part for arm %r has %d of %d corners out of its reach; worst at "
                         "(%.1f, %.1f, %.1f) mm on the bed, missed by %.1f mm"
                         % (arm.name, (~ok).sum(), len(ok), *m_to_mm(v[worst]), m_to_mm(err[worst])))
+
+
+#: the eight corners of a grid cube, as offsets of its lowest corner's key (21 bits an axis)
+_CUBE_CORNERS = np.array([(i << 42) | (j << 21) | k for i in (0, 1) for j in (0, 1) for k in (0, 1)],
+                         dtype=np.int64)
+_GRID_MASK = (1 << 21) - 1
+_GRID_HALF = 1 << 20
 
 
 def _cached_reach(known, world, solve):

@@ -31,7 +31,8 @@ def crossing_pairs(mesh):
 
     Broad phase: a uniform grid of cells about the mean triangle size, every
     triangle in the cells its bounding box covers, candidate pairs those
-    sharing a cell whose boxes overlap; narrow phase: each of the six edges
+    sharing a cell whose boxes overlap (boxes widened by the tolerance and
+    rounded outward to float32); narrow phase: each of the six edges
     of a pair against the other triangle (Moller-Trumbore), in numpy.  Hits
     within 1e-9 of the model's size of an edge's end or of the other
     triangle's border do not count: triangles that only touch are not
@@ -40,28 +41,51 @@ def crossing_pairs(mesh):
     faces = np.asarray(mesh.faces, dtype=np.int64)
     if len(tri) < 2:
         return np.zeros((0, 2), dtype=np.int64), np.zeros((0, 3))
-    lo, hi = tri.min(axis=1), tri.max(axis=1)
+    # corner by corner: 10x faster than min/max over the middle axis
+    lo = np.minimum(np.minimum(tri[:, 0], tri[:, 1]), tri[:, 2])
+    hi = np.maximum(np.maximum(tri[:, 0], tri[:, 1]), tri[:, 2])
     size = float(np.linalg.norm(mesh.extents)) or 1.0
     cell = max(float(np.mean(hi - lo)) * 2.0, 1e-6 * size)
     c_lo = np.floor((lo - lo.min(axis=0)) / cell).astype(np.int64)
     c_hi = np.floor((hi - lo.min(axis=0)) / cell).astype(np.int64)
     span = c_hi - c_lo + 1
-    # one (cell, triangle) row per cell a triangle's box covers
-    count = np.prod(span, axis=1)
-    owner = np.repeat(np.arange(len(tri)), count)
-    k = np.arange(len(owner)) - np.repeat(np.cumsum(count) - count, count)
-    sx, sy = span[owner, 0], span[owner, 1]
-    ijk = c_lo[owner] + np.stack([k % sx, (k // sx) % sy, k // (sx * sy)], axis=1)
-    dims = ijk.max(axis=0) + 1
-    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    dims = c_hi.max(axis=0) + 1
+    # one (cell, triangle) row per cell a triangle's box covers, the cell as
+    # one integer; a box of at most 2 cells an axis (most): one pass per
+    # offset in the 2 x 2 x 2 block; larger boxes: cell by cell
+    base = (c_lo[:, 0] * dims[1] + c_lo[:, 1]) * dims[2] + c_lo[:, 2]
+    small = (span <= 2).all(axis=1)
+    by_cell = np.argsort(base)            # each pass's rows come sorted: one merge of runs below
+    keys, owners = [], []
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                at = by_cell[(small & (span[:, 0] > dx) & (span[:, 1] > dy) & (span[:, 2] > dz))[by_cell]]
+                keys.append(base[at] + (dx * dims[1] + dy) * dims[2] + dz)
+                owners.append(at)
+    large = np.flatnonzero(~small)
+    if len(large):
+        count = np.prod(span[large], axis=1)
+        owner = np.repeat(large, count)
+        k = np.arange(len(owner)) - np.repeat(np.cumsum(count) - count, count)
+        sx, sy = span[owner, 0], span[owner, 1]
+        ijk = c_lo[owner] + np.stack([k % sx, (k // sx) % sy, k // (sx * sy)], axis=1)
+        keys.append((ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2])
+        owners.append(owner)
+    key, owner = np.concatenate(keys), np.concatenate(owners)
+    # a merge of the sorted runs (timsort finds them); the order inside a cell
+    # does not matter: pairs are sorted below
     order = np.argsort(key, kind="stable")
     key, owner = key[order], owner[order]
     starts = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]]))
     lengths = np.diff(np.concatenate([starts, [len(key)]]))
     eps = 1e-9 * size
-    lo_cols = [np.ascontiguousarray(lo[:, axis]) for axis in range(3)]
-    hi_cols = [np.ascontiguousarray(hi[:, axis]) for axis in range(3)]
-    corners = [np.ascontiguousarray(faces[:, i]) for i in range(3)]
+    # boxes in float32 rounded outward (half the memory to gather; the
+    # candidates a superset of the float64 test's: the narrow phase decides)
+    lo_cols = [np.nextafter((lo[:, axis] - eps).astype(np.float32), np.float32(-np.inf)) for axis in range(3)]
+    hi_cols = [np.nextafter((hi[:, axis] + eps).astype(np.float32), np.float32(np.inf)) for axis in range(3)]
+    corners = [np.ascontiguousarray(faces[:, i], dtype=np.int32 if len(mesh.vertices) < 2 ** 31 else np.int64)
+               for i in range(3)]
     pairs = []
     for m in np.unique(lengths[lengths > 1]):          # cells of m triangles: all pairs at once
         i, j = np.triu_indices(int(m), 1)
@@ -69,18 +93,23 @@ def crossing_pairs(mesh):
         step = max(1, 500_000 // len(i))              # bounded memory: ~500,000 pairs at a time
         for c in range(0, len(cells), step):
             members = owner[cells[c:c + step, None] + np.arange(m)]      # (cells, m)
-            a, b = members[:, i].ravel(), members[:, j].ravel()
-            keep = np.ones(len(a), dtype=bool)
+            # each member's data gathered once, (cells, m), then paired inside its row
+            keep = np.ones((len(members), len(i)), dtype=bool)
             for lo_, hi_ in zip(lo_cols, hi_cols):    # boxes overlap (column by column: 5x faster)
-                keep &= (lo_[a] <= hi_[b] + eps) & (lo_[b] <= hi_[a] + eps)
-            a, b = a[keep], b[keep]
-            share = np.zeros(len(a), dtype=bool)      # neighbours (a corner in common) do not count
-            of_b = [cb[b] for cb in corners]
-            for ca in corners:
-                ca = ca[a]
+                lo_m, hi_m = lo_[members], hi_[members]
+                keep &= (lo_m[:, i] <= hi_m[:, j]) & (lo_m[:, j] <= hi_m[:, i])
+            at = np.flatnonzero(keep)                 # flat indices into members: 1-D takes are faster
+            row, col = np.divmod(at, len(i))
+            fa, fb = row * m + i[col], row * m + j[col]
+            share = np.zeros(len(at), dtype=bool)     # neighbours (a corner in common) do not count
+            corner_m = [cm[members].ravel() for cm in corners]
+            of_b = [cm.take(fb) for cm in corner_m]
+            for cm in corner_m:
+                ca = cm.take(fa)
                 for cb in of_b:
                     share |= ca == cb
-            pairs.append(np.sort(np.stack([a[~share], b[~share]], axis=1), axis=1))
+            flat = members.ravel()
+            pairs.append(np.sort(np.stack([flat.take(fa[~share]), flat.take(fb[~share])], axis=1), axis=1))
     pairs = np.concatenate(pairs) if pairs else np.zeros((0, 2), dtype=np.int64)
     key = np.unique(pairs[:, 0] * len(tri) + pairs[:, 1])        # a pair met in several cells: once
     pairs = np.stack([key // len(tri), key % len(tri)], axis=1)

@@ -290,3 +290,74 @@ def test_to_manifold_refuses_an_open_mesh():
     box = cube()
     with pytest.raises(MeshError, match="NotManifold"):
         to_manifold(trimesh.Trimesh(box.vertices, box.faces[1:], process=False))
+
+
+def _fresh_manifold(mesh):
+    import manifold3d
+    return manifold3d.Manifold(manifold3d.Mesh64(vert_properties=np.array(mesh.vertices, dtype=np.float64),
+                                                 tri_verts=np.array(mesh.faces, dtype=np.uint64)))
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (3.3, -7.1, 11.7), (900.0, 700.0, 300.0)])
+def test_a_placed_mesh_gets_the_manifold_a_fresh_conversion_would_make(offset):
+    """place_on_bed carries the load's Manifold to the placed copy only when
+    it is the one converting the copy makes (vertices, triangles, tolerance:
+    a model moved from far away towards the origin is converted again)."""
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=30.0)
+    mesh.apply_translation(offset)
+    to_manifold(mesh)
+    placed = place_on_bed(mesh)
+    got, fresh = to_manifold(placed), _fresh_manifold(placed)
+    assert got.get_tolerance() == fresh.get_tolerance()
+    for a, b in ((got, fresh), (got.trim_by_plane([1.0, 0.3, 0.0], 0.7), fresh.trim_by_plane([1.0, 0.3, 0.0], 0.7))):
+        a, b = a.to_mesh64(), b.to_mesh64()
+        assert np.array_equal(a.vert_properties, b.vert_properties) and np.array_equal(a.tri_verts, b.tri_verts)
+    placed.vertices[0] += 0.5                              # changed since: converted again
+    assert np.array_equal(to_manifold(placed).to_mesh64().vert_properties,
+                          _fresh_manifold(placed).to_mesh64().vert_properties)
+
+
+def test_edge_counts_are_counted_again_after_a_change():
+    from ambots.mesh import nonmanifold_edge_count, open_edge_count
+    mesh = cube()
+    assert (open_edge_count(mesh), nonmanifold_edge_count(mesh)) == (0, 0)
+    mesh.update_faces(np.arange(1, len(mesh.faces)))      # a triangle removed: a hole of 3 edges
+    assert (open_edge_count(mesh), nonmanifold_edge_count(mesh)) == (3, 0)
+    mesh.faces = np.concatenate([mesh.faces, mesh.faces[:1], mesh.faces[:1]])   # edges used 3 or 4 times
+    uses = np.unique(mesh.edges_sorted, axis=0, return_counts=True)[1]
+    assert (open_edge_count(mesh), nonmanifold_edge_count(mesh)) == ((uses == 1).sum(), (uses > 2).sum())
+    assert nonmanifold_edge_count(mesh) > 0
+
+
+@pytest.mark.parametrize("name", sorted(MODELS) + ["sphere", "soup"])
+def test_weld_is_trimesh_merge_vertices(tmp_path, name):
+    """ambots.mesh.weld gives what trimesh's merge_vertices(merge_tex=True,
+    merge_norm=True) gives: the same vertices in the same order, the same triangles."""
+    from ambots.mesh import weld
+    rng = np.random.default_rng(3)
+    if name == "soup":                   # repeated points at several scales, unreferenced ones
+        pts = np.repeat(rng.random((60, 3)) * 10.0 ** rng.integers(-4, 3, (60, 1)), 3, axis=0)[rng.permutation(180)]
+        read = lambda: trimesh.Trimesh(pts, rng.integers(0, 170, (120, 3)), process=False)
+    else:
+        shape = trimesh.creation.icosphere(subdivisions=4, radius=30.0) if name == "sphere" else MODELS[name]()
+        path = write(tmp_path / "m.stl", shape)
+        read = lambda: trimesh.load(path, process=False)
+    ours, theirs = read(), read()
+    if name == "soup":
+        theirs = trimesh.Trimesh(ours.vertices.copy(), ours.faces.copy(), process=False)
+    weld(ours)
+    theirs.merge_vertices(merge_tex=True, merge_norm=True)
+    assert np.array_equal(ours.vertices, theirs.vertices) and np.array_equal(ours.faces, theirs.faces)
+
+
+@pytest.mark.parametrize("name", sorted(MODELS) + ["inside-out", "soup"])
+def test_signed_volume_is_trimesh_volume_to_the_bit(name):
+    from ambots.mesh import signed_volume
+    if name == "soup":
+        rng = np.random.default_rng(5)
+        mesh = trimesh.Trimesh(rng.random((30, 3)) * 100 - 50, rng.integers(0, 30, (40, 3)), process=False)
+    else:
+        mesh = MODELS["overhang" if name == "inside-out" else name]()
+        if name == "inside-out":
+            mesh.invert()
+    assert signed_volume(mesh) == float(mesh.volume)

@@ -105,3 +105,70 @@ def test_four_arms_in_the_corners_get_four_balanced_quarters(tmp_path):
     for p, s in zip(parts, sites):     # each quarter lies towards its arm
         c = np.mean(np.asarray(p.manifold.to_mesh().vert_properties)[:, :2], axis=0)
         assert np.dot(c, s) > 0
+
+
+def _reach_message(cell, part, **kw):
+    from ambots.partition import _check_reach
+    try:
+        _check_reach(cell, part, **kw)
+    except MeshError as exc:
+        return str(exc)
+    return "ok"
+
+
+def _solved_points(monkeypatch, kin):
+    """A list that grows by the number of points each ``kin.ik_batch`` call solves."""
+    solved, ik = [], kin.ik_batch
+    monkeypatch.setattr(kin, "ik_batch", lambda P, *a, **k: (solved.append(len(P)), ik(P, *a, **k))[1])
+    return solved
+
+
+def test_the_reach_check_refuses_a_part_just_past_the_reach_as_solving_every_vertex_does(cell, monkeypatch):
+    """A fine ball slid away from the UR10 until the check of every vertex
+    (the oracle) refuses it, to within 0.05 mm: the grid check (far fewer
+    points solved) accepts it where the oracle does and refuses it, with the
+    same message, just past."""
+    from ambots.kinematics import shared_arm_kinematics
+    from ambots.partition import Part
+    arm = cell.arm("ur10")
+    ball = m3.Manifold.sphere(8, 128)
+    site = arm_sites_mm(cell, [arm])[0]
+    away = -site / np.linalg.norm(site)                       # from the base across the bed, 60 mm up
+    at = lambda d: Part(arm, ball.translate([*(away * d), 60.0]))
+    oracle = lambda d: _reach_message(cell, at(d), exhaustive=True)
+    near, far = 0.0, 100.0
+    assert oracle(near) == "ok"
+    while oracle(far) == "ok":
+        near, far = far, far * 2
+    while far - near > 0.05:
+        mid = (near + far) / 2
+        near, far = (mid, far) if oracle(mid) == "ok" else (near, mid)
+    solved = _solved_points(monkeypatch, shared_arm_kinematics(arm))
+    assert _reach_message(cell, at(near)) == "ok"
+    assert 0 < sum(solved) < ball.num_vert() / 4             # the corners, not the vertices
+    past = _reach_message(cell, at(far))
+    assert past.startswith("the part for arm 'ur10' has ") and "out of its reach" in past
+    assert past == oracle(far)
+
+
+@pytest.mark.parametrize("model, arms", [
+    ("ball", None), ("ball", ["kinova"]), ("high_ball", None), ("high_ball", ["kinova"]), ("hole", ["ur10"])])
+def test_the_reach_check_agrees_with_solving_every_vertex(cell, model, arms, monkeypatch):
+    """The grid check (:func:`ambots.partition._check_reach`, fewer points
+    solved than the part has vertices) and the check of every vertex give
+    the same verdict and the same message, part by part: in reach, and
+    partly out of reach."""
+    from ambots.kinematics import shared_arm_kinematics
+    models = {"ball": lambda: m3.Manifold.sphere(30, 512).translate([0, 0, 30]),
+              "high_ball": lambda: m3.Manifold.sphere(40, 512).translate([0, 0, 480]),
+              "hole": lambda: hole_through().refine(18)}
+    parts = partition(models[model](), cell, None if arms is None else [cell.arm(n) for n in arms],
+                      check_reach=False)
+    for part in parts:
+        solved = _solved_points(monkeypatch, shared_arm_kinematics(part.arm))
+        fast = _reach_message(cell, part)
+        assert 0 < sum(solved) < part.manifold.num_vert()
+        monkeypatch.undo()
+        assert fast == _reach_message(cell, part, exhaustive=True)
+        if model == "high_ball" and arms == ["kinova"]:
+            assert "out of its reach" in fast
