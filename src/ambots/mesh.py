@@ -378,6 +378,18 @@ def nonmanifold_edge_count(mesh):
     return _edge_counts(mesh)[1]
 
 
+def _kept(cache, mesh):
+    """(hash of ``mesh``'s data, the value ``cache`` keeps for it while that
+    data is unchanged, else None); (None, None) for what is not a trimesh
+    (no weak reference or hash).  Store with ``cache[mesh] = (key, value)``."""
+    try:
+        key = hash(mesh)
+        hit = cache.get(mesh)
+    except TypeError:
+        return None, None
+    return key, (hit[1] if hit is not None and hit[0] == key else None)
+
+
 #: the (open, non-manifold) edge counts of each live mesh, with the hash of
 #: the mesh's data they were counted on: a load asks several times
 _EDGE_COUNTS = weakref.WeakKeyDictionary()
@@ -386,13 +398,9 @@ _EDGE_COUNTS = weakref.WeakKeyDictionary()
 def _edge_counts(mesh):
     """(edges used by one triangle, edges used by more than two) of
     ``mesh``, counted once while its data is unchanged."""
-    try:
-        key = hash(mesh)
-        hit = _EDGE_COUNTS.get(mesh)
-    except TypeError:                    # not a trimesh (no weak reference or hash)
-        key = hit = None
-    if hit is not None and hit[0] == key:
-        return hit[1]
+    key, hit = _kept(_EDGE_COUNTS, mesh)
+    if hit is not None:
+        return hit
     edges = np.asarray(mesh.edges_sorted, dtype=np.int64)
     counts = (0, 0)
     if len(edges):
@@ -536,13 +544,9 @@ def to_manifold(mesh, name=None):
 
     Raises MeshError naming manifold3d's status when it refuses the mesh
     (not an oriented 2-manifold, non-finite vertex...)."""
-    try:
-        key = hash(mesh)
-        hit = _MANIFOLDS.get(mesh)
-    except TypeError:                    # not a trimesh (no weak reference or hash)
-        key = hit = None
-    if hit is not None and hit[0] == key:
-        return hit[1]
+    key, hit = _kept(_MANIFOLDS, mesh)
+    if hit is not None:
+        return hit
     m = manifold3d.Manifold(manifold3d.Mesh64(
         # copies: nanobind wants writeable C arrays, trimesh's may be read-only
         vert_properties=np.array(mesh.vertices, dtype=np.float64, order="C"),
