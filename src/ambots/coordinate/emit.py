@@ -8,14 +8,13 @@ an arm's steps with it (layer changes, waits, travels, pieces, parks,
 reports), and :func:`resolve_waits` turns every wait into the ``;@A9``
 directive naming the line of the other arm's program it waits for, once
 every program is written."""
+import math
 from dataclasses import dataclass, field
 from typing import List, Optional
 
-import math
-
 import numpy as np
 
-from ambots.gcode import _Z_EPS, GCodeWarning, Segment, _new_segment
+from ambots.gcode import _Z_EPS, MAX_ABS_MM, GCodeWarning, Segment, _layer_marker, _new_segment
 from ambots.program import directive
 from ambots.protocol import MoveTo, SendPosition, WaitFor
 
@@ -69,7 +68,6 @@ class _Events:
     reports the error)."""
 
     def __init__(self):
-        from ambots.gcode import MAX_ABS_MM
         self.lim = MAX_ABS_MM
         self.x = self.y = self.z = self.e = 0.0
         self.feed = 0.0
@@ -81,7 +79,6 @@ class _Events:
 
     def line(self, line):
         """A line that is not a move: a comment (a layer change?) or the header's modes."""
-        from ambots.gcode import _layer_marker
         if line is None:                      # a wait, written later as a directive (a comment)
             return
         if any(c in line for c in _BREAKS):
