@@ -70,21 +70,13 @@ class Schedule:
         self.layer_end = {}                                                        # (arm, layer) -> time printed
         self.done = {n: False for n in names}
         self.t_free = {n: 0.0 for n in names}
+        self._arrays = {}                                                          # (arm, layer) -> arrays
 
     # ---- the state
     def state_d(self, b, t):
         if self.acts[b] and self.acts[b][-1].C > t:
             return self.acts[b][-1].fp
         return self.pos_d[b]
-
-    def clash(self, n, fp, t):
-        """Arms whose current state is too near a step of arm n with footprint fp at time t."""
-        sm = self.seams
-        out = []
-        for i, b in enumerate(sm.nbrs[n]):
-            if fp[i] + self.state_d(b, t)[sm.where[n][b]] < sm.Z[n][i] - 1e-9:
-                out.append(b)
-        return out
 
     def start(self, n, act, end_pos, at_park):
         self.acts[n].append(act)
@@ -109,27 +101,59 @@ class Schedule:
                    (self.layer_of[b] == layer and not self.left[b] and self.layer_end.get((b, layer), 0.0) <= t)
                    for b in self.seams.nbrs[n])
 
-    def candidates(self, n, t):
-        """(chunk index, footprint, clashing arms, score) of arm n's chunks left in its layer."""
-        out = []
-        if not self.left[n]:
-            return out
-        chunks = self.chunks[n, self.layer_of[n]]
-        # how near the arm is to each chunk's ends, all at once
-        here = self.pos[n]
-        ends = np.array([chunks[ci][0][0].start for ci in self.left[n]] + [chunks[ci][0][-1].end for ci in self.left[n]],
-                        dtype=float)
-        d = np.linalg.norm(ends - here, axis=1).reshape(2, -1)
-        nearest = np.minimum(d[0], d[1]).tolist()
-        for ci, near in zip(self.left[n], nearest):
-            ps, dmin, level = chunks[ci]
-            fp = np.minimum(dmin, self.pos_d[n])
-            if self.first[n] or self.parked[n]:         # the joint move there, from home or the park position
-                p = np.asarray(first_start(ps), dtype=float)
-                fp = np.minimum(fp, self.seams.path_d(n, None, p) if self.first[n] else
-                                self.seams.path_d(n, self.park[n], p + (0.0, 0.0, 10.0)))
-            out.append((ci, fp, self.clash(n, fp, t), (level, near)))
+    def _layer_arrays(self, n, layer):
+        """Arm n's chunks of ``layer`` as arrays (kept): closest distances to
+        each plane (C, P), levels (C,), first pieces' starts and last pieces'
+        ends (2C, 3), and a dict for :meth:`_joint_d`."""
+        key = (n, layer)
+        out = self._arrays.get(key)
+        if out is None:
+            chunks = self.chunks[key]
+            P = len(self.seams.N[n])
+            D = np.array([c[1] for c in chunks], dtype=float).reshape(len(chunks), P)
+            ends = np.array([c[0][0].start for c in chunks] + [c[0][-1].end for c in chunks],
+                            dtype=float).reshape(-1, 3)
+            out = self._arrays[key] = (D, [c[2] for c in chunks], ends, {})
         return out
+
+    def _joint_d(self, n, layer, ci, first):
+        """Closest distances to the planes (P,) of the joint move to chunk ci's
+        start: from home (``first``) or from the park position (kept)."""
+        cache = self._layer_arrays(n, layer)[3]
+        key = (ci, first)
+        out = cache.get(key)
+        if out is None:
+            p = np.asarray(first_start(self.chunks[n, layer][ci][0]), dtype=float)
+            out = cache[key] = (self.seams.path_d(n, None, p) if first else
+                                self.seams.path_d(n, self.park[n], p + (0.0, 0.0, 10.0)))
+        return out
+
+    def candidates(self, n, t):
+        """(chunk index, footprint, clashing arms, score) of arm n's chunks left
+        in its layer, all chunks at once."""
+        if not self.left[n]:
+            return []
+        layer = self.layer_of[n]
+        D, levels, ends, _ = self._layer_arrays(n, layer)
+        left = self.left[n]
+        C = len(D)
+        # how near the arm is to each chunk's ends, all at once
+        d = ends[left + [C + ci for ci in left]] - self.pos[n]
+        d = np.sqrt(np.add.reduce(d * d, axis=1)).reshape(2, -1)      # np.linalg.norm(axis=1)'s arithmetic
+        nearest = np.minimum(d[0], d[1]).tolist()
+        FP = np.minimum(D[left], self.pos_d[n])
+        if self.first[n] or self.parked[n]:         # the joint move there, from home or the park position
+            first = self.first[n]
+            FP = np.minimum(FP, np.array([self._joint_d(n, layer, ci, first) for ci in left]).reshape(FP.shape))
+        sm = self.seams
+        nbrs = sm.nbrs[n]
+        if nbrs:
+            S = np.array([self.state_d(b, t)[sm.where[n][b]] for b in nbrs], dtype=float)
+            hit = (FP + S < sm.Z[n] - 1e-9).tolist()
+        else:
+            hit = [[]] * len(left)
+        return [(ci, fp, [b for b, h in zip(nbrs, row) if h], (levels[ci], near))
+                for ci, fp, row, near in zip(left, FP, hit, nearest)]
 
     def rank(self, n):
         """Priority in the current layer: the cell's order on even layers,
@@ -148,7 +172,7 @@ class Schedule:
                     or not self.left[b]):
                 continue
             j = sm.where[n][b]
-            rest = min(self.chunks[b, self.layer_of[b]][ci][1][j] for ci in self.left[b])
+            rest = self._layer_arrays(b, self.layer_of[b])[0][self.left[b], j].min()
             if fp[i] + rest < sm.Z[n][i] - 1e-9:
                 return True
         return False

@@ -136,7 +136,8 @@ def _order_runs(segs, pos):
     here = np.asarray(pos if pos is not None else runs[0][0].start, dtype=float)
     out = []
     for _ in range(R):
-        d = np.linalg.norm(ends - here, axis=1)
+        d = ends - here
+        d = np.sqrt(np.add.reduce(d * d, axis=1))      # np.linalg.norm(axis=1)'s arithmetic, without its overhead
         i, j = int(np.argmin(d[:R])), int(np.argmin(d[R:]))
         if d[R + j] < d[i] - 1e-9:
             out.extend(s._replace(start=s.end, end=s.start) for s in reversed(runs[j]))
