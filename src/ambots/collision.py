@@ -183,7 +183,7 @@ class ArmBody:
         instance = isinstance(arm, ArmInstance)
         profile = arm.profile if instance else arm
         urdf = arm_urdf(profile)
-        kin = ArmKinematics.from_urdf(urdf, base=profile.base_link, tip=profile.tool_link)
+        kin = ArmKinematics.from_urdf(urdf, base=profile.base_link, tip=profile.tool_link, trail=profile.tool_trail)
         return cls(kin, urdf, arm.base_pose if instance else None, arm.name)
 
     def __len__(self):

@@ -20,7 +20,8 @@ from ambots import data_path, protocol, topics
 from ambots.errors import ConfigError
 
 __all__ = ["ArmProfile", "ArmInstance", "Bed", "Cell", "Capsule", "load_arm_profile", "load_cell",
-           "pose_matrix", "resolve_path", "DRIVER_NUMBERS", "DRIVER_NAMES", "BODY_KINDS", "HEAD_TIP_GAP"]
+           "pose_matrix", "resolve_path", "DRIVER_NUMBERS", "DRIVER_NAMES", "BODY_KINDS", "HEAD_TIP_GAP",
+           "TOOL_TURNS"]
 
 #: optional numbers (> 0) of a profile's ``driver:`` section: s between trajectory points the
 #: controller requires, rad/s it accepts on every joint (see :mod:`ambots.trajectory`)
@@ -33,6 +34,10 @@ BODY_KINDS = ("tube", "housing", "ball")
 #: every print head body stays at least this far behind the nozzle tip (m), so that a
 #: nozzle printing on the part does not touch it (the profiles keep 5 mm)
 HEAD_TIP_GAP = 0.002
+#: a profile's ``tool.turn``, the turn about the nozzle axis: ``free`` (the IK keeps it near where
+#: it was) or ``toward_base`` (a nozzle off the flange's axis keeps the flange towards the arm's
+#: base, so the wrist and forearm trail behind the nozzle, away from the arms across the bed)
+TOOL_TURNS = ("free", "toward_base")
 
 
 def resolve_path(path, relative_to=None):
@@ -242,6 +247,30 @@ def _read_bodies(r):
     return out
 
 
+def _tool_trail(xyz, rpy):
+    """The flange's origin seen from the nozzle, in the nozzle frame, without
+    its part along the nozzle axis, made unit (None when the nozzle is on the
+    flange's axis, within 1 mm)."""
+    T = pose_matrix(xyz, rpy)
+    flange = -T[:3, :3].T @ T[:3, 3]
+    flange[2] = 0.0
+    norm = float(np.linalg.norm(flange))
+    return None if norm < 1e-3 else flange / norm
+
+
+def _read_turn(tool):
+    """``tool.turn`` (default ``free``); ``toward_base`` needs a nozzle off the
+    flange's axis, or the turn would move nothing but the head."""
+    turn = tool.str("turn", "free")
+    if turn not in TOOL_TURNS:
+        raise ConfigError(tool.path, tool.prefix + ".turn", "expected one of %s, got %r" % (", ".join(TOOL_TURNS), turn))
+    if turn != "free" and _tool_trail(tool.vec("xyz", 3), tool.vec("rpy", 3, (0.0, 0.0, 0.0))) is None:
+        raise ConfigError(tool.path, tool.prefix + ".turn",
+                          "%s needs the nozzle off the flange's axis (tool.xyz, tool.rpy put it within 1 mm of "
+                          "it): turning about the nozzle axis would then move only the print head" % turn)
+    return turn
+
+
 def _read_head(tool):
     """The print head's bodies (``tool.head:``, nozzle frame: the tip at the
     origin, z out of the tip), each kept :data:`HEAD_TIP_GAP` behind the tip."""
@@ -279,10 +308,22 @@ class ArmProfile:
     bodies: dict = field(default_factory=dict)
     #: the print head's bodies on the ``nozzle`` link (nozzle frame)
     head: Tuple[Capsule, ...] = ()
+    #: the turn about the nozzle axis (``tool.turn``): one of :data:`TOOL_TURNS`
+    tool_turn: str = "free"
 
     @property
     def joint_names(self):
         return tuple(j.name for j in self.joints)
+
+    @property
+    def tool_trail(self):
+        """For ``tool.turn: toward_base``: the unit direction (3,), in the
+        nozzle frame, from the nozzle towards the flange's axis, perpendicular
+        to the nozzle (its z); the IK keeps it pointing at the arm's base
+        (:class:`ambots.kinematics.ArmKinematics`).  None when the turn is free."""
+        if self.tool_turn == "free":
+            return None
+        return _tool_trail(self.tool_xyz, self.tool_rpy)
 
     @property
     def tool_link(self):
@@ -312,7 +353,7 @@ def load_arm_profile(path):
         if not jl.lower <= q <= jl.upper:
             raise ConfigError(path, "home", "%s = %g is outside its limits [%g, %g]" % (jl.name, q, jl.lower, jl.upper))
     tool = r.sub("tool")
-    tool.only(("xyz", "rpy", "head"))
+    tool.only(("xyz", "rpy", "head", "turn"))
     driver = r.sub("driver")
     names = driver.get("joint_names")
     if not isinstance(names, list) or len(names) != n or not all(isinstance(s, str) for s in names):
@@ -339,7 +380,7 @@ def load_arm_profile(path):
         reach=r.num("reach", positive=True), joints=tuple(joints), home=home,
         velocity_scaling=scaling, colour=r.vec("filament_colour", 4),
         driver_joint_names=tuple(names), driver_command_topic=driver.str("command_topic"),
-        driver_options=options, bodies=_read_bodies(r), head=_read_head(tool))
+        driver_options=options, bodies=_read_bodies(r), head=_read_head(tool), tool_turn=_read_turn(tool))
 
 
 @dataclass(frozen=True)

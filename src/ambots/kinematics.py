@@ -7,12 +7,16 @@
 * :class:`ArmKinematics` -- forward kinematics (KDL for one configuration,
   vectorised numpy for many: ``(N, n)`` joint vectors -> ``(N, 4, 4)`` poses),
   geometric Jacobians, and inverse kinematics for a nozzle *position* plus a
-  nozzle *axis direction* (usually straight down), leaving the rotation about
-  the nozzle axis free.  IK is seeded, respects joint limits and reports
-  failure instead of returning garbage.
+  nozzle *axis direction* (usually straight down).  The rotation about the
+  nozzle axis is left free, or, for a print head whose nozzle sits off the
+  flange's axis (``trail``), chosen so that the flange stays on the side of
+  the arm's base: the wrist and forearm trail behind the nozzle.  IK is
+  seeded, respects joint limits and reports failure instead of returning
+  garbage.
 
 The IK is a damped least-squares Newton iteration on a 5-row task (3 position
-rows, 2 rows for the tilt of the nozzle axis), run on many targets at once.
+rows, 2 rows for the tilt of the nozzle axis; a 6th row for the turn about
+the nozzle axis with a ``trail``), run on many targets at once.
 :meth:`ArmKinematics.ik_path` solves a densely sampled toolpath by solving
 sparse key points one after the other (each seeded by the previous one), then
 refining every point at once from seeds interpolated between the keys.
@@ -27,7 +31,8 @@ import numpy as np
 
 from ambots.errors import KinematicsError, UnreachableError
 
-__all__ = ["Segment", "Chain", "chain_from_urdf", "kdl_chain", "ArmKinematics", "DOWN", "shared_arm_kinematics"]
+__all__ = ["Segment", "Chain", "chain_from_urdf", "kdl_chain", "ArmKinematics", "DOWN", "trail_targets",
+           "shared_arm_kinematics"]
 
 #: nozzle pointing straight down in a base frame whose z axis is up
 DOWN = np.array([0.0, 0.0, -1.0])
@@ -172,13 +177,28 @@ class ArmKinematics:
         From :func:`chain_from_urdf`; its tip is the tool frame (the nozzle).
     tool_axis : (3,) array
         The nozzle's pointing direction in the tool frame (its z axis).
+    trail : (3,) array or None
+        A direction in the tool frame, perpendicular to ``tool_axis`` (for an
+        offset print head: from the nozzle towards the flange's axis).  With
+        it the IK also fixes the turn about the nozzle axis: ``trail`` points
+        (in the plane perpendicular to the nozzle axis) towards the base
+        frame's z axis, so the flange, wrist and forearm stay between the
+        nozzle and the arm's base (:func:`trail_targets`).  None: that turn
+        is free (the iteration's least-norm step keeps it near the seed).
     """
 
-    def __init__(self, chain, tool_axis=(0.0, 0.0, 1.0)):
+    def __init__(self, chain, tool_axis=(0.0, 0.0, 1.0), trail=None):
         if chain.dof == 0:
             raise KinematicsError("chain %s -> %s has no movable joint" % (chain.base, chain.tip))
         self.chain = chain
         self.tool_axis = np.asarray(tool_axis, dtype=float)
+        self.trail = None
+        if trail is not None:
+            t = np.asarray(trail, dtype=float)
+            t = t - (t @ self.tool_axis) * self.tool_axis / (self.tool_axis @ self.tool_axis)
+            if not np.linalg.norm(t) > 1e-9:
+                raise KinematicsError("trail %s is parallel to the tool axis %s" % (list(trail), list(tool_axis)))
+            self.trail = t / np.linalg.norm(t)
         self.lower, self.upper = chain.lower, chain.upper
         # pre-computed per-segment data for the vectorised FK
         self._plan = []
@@ -201,9 +221,9 @@ class ArmKinematics:
         self._kdl = None
 
     @classmethod
-    def from_urdf(cls, urdf_xml, base="base_link", tip="nozzle", prefix="", tool_axis=(0.0, 0.0, 1.0)):
+    def from_urdf(cls, urdf_xml, base="base_link", tip="nozzle", prefix="", tool_axis=(0.0, 0.0, 1.0), trail=None):
         """Build from a URDF string; ``prefix`` is prepended to ``base`` and ``tip``."""
-        return cls(chain_from_urdf(urdf_xml, prefix + base, prefix + tip), tool_axis)
+        return cls(chain_from_urdf(urdf_xml, prefix + base, prefix + tip), tool_axis, trail)
 
     @property
     def dof(self):
@@ -398,6 +418,8 @@ class ArmKinematics:
         U = _cross(D, np.broadcast_to(helper, D.shape))
         U /= np.linalg.norm(U, axis=1, keepdims=True)
         V = _cross(D, U)
+        H = None if self.trail is None else trail_targets(P, D, U)
+        rows = 5 if H is None else 6
         finite_limits = np.isfinite(self.lower) | np.isfinite(self.upper)
         Q = np.clip(Q, self.lower, self.upper)
         ok = np.zeros(N, dtype=bool)
@@ -418,18 +440,28 @@ class ArmKinematics:
             perr = np.linalg.norm(ep, axis=1)
             err[active] = perr
             done = (perr <= tol) & (ang <= axis_tol)
+            if H is not None:
+                # the turn about the wanted axis that brings the trail onto its target
+                b = T[:, :3, :3] @ self.trail
+                b = b - np.einsum("ij,ij->i", b, d)[:, None] * d
+                h = H[active]
+                turn = np.arctan2(np.einsum("ij,ij->i", _cross(b, h), d), np.einsum("ij,ij->i", b, h))
+                done &= np.abs(turn) <= axis_tol
             ok[active[done]] = True
             keep = ~done
             if not keep.any() or _ == max_iter:
                 break
             active, ep, eo, J = active[keep], ep[keep], eo[keep], J[keep]
             u, v = U[active], V[active]
-            A = np.concatenate([J[:, :3, :],
-                                np.einsum("ij,ijk->ik", u, J[:, 3:, :])[:, None, :],
-                                np.einsum("ij,ijk->ik", v, J[:, 3:, :])[:, None, :]], axis=1)  # (M,5,n)
-            e = np.concatenate([ep, np.einsum("ij,ij->i", u, eo)[:, None],
-                                np.einsum("ij,ij->i", v, eo)[:, None]], axis=1)              # (M,5)
-            AAt = A @ A.transpose(0, 2, 1) + lam2 * np.eye(5)
+            A = [J[:, :3, :], np.einsum("ij,ijk->ik", u, J[:, 3:, :])[:, None, :],
+                 np.einsum("ij,ijk->ik", v, J[:, 3:, :])[:, None, :]]
+            e = [ep, np.einsum("ij,ij->i", u, eo)[:, None], np.einsum("ij,ij->i", v, eo)[:, None]]
+            if H is not None:
+                A.append(np.einsum("ij,ijk->ik", D[active], J[:, 3:, :])[:, None, :])
+                e.append(turn[keep][:, None])
+            A = np.concatenate(A, axis=1)                                                    # (M,rows,n)
+            e = np.concatenate(e, axis=1)                                                    # (M,rows)
+            AAt = A @ A.transpose(0, 2, 1) + lam2 * np.eye(rows)
             dq = np.einsum("ikj,ik->ij", A, np.linalg.solve(AAt, e[:, :, None])[:, :, 0])
             big = np.max(np.abs(dq), axis=1)
             dq *= np.minimum(1.0, max_step / np.maximum(big, 1e-300))[:, None]
@@ -505,9 +537,14 @@ class ArmKinematics:
         q = [min(max(float(v), lo[i]), hi[i]) for i, v in enumerate(seed)]
         finite = any(math.isfinite(a) or math.isfinite(b) for a, b in zip(lo, hi))
         tax, tay, taz = (float(v) for v in self.tool_axis)
+        trail = self.trail is not None
+        if trail:
+            bx0, by0, bz0 = (float(v) for v in self.trail)
+            (hx, hy, hz), = trail_targets(np.array([[tx, ty, tz]]), np.array([[dx, dy, dz]]),
+                                          np.array([[ux, uy, uz]])).tolist()
         lam2 = damping ** 2
         ok, err = False, math.inf
-        eye5 = np.eye(5) * lam2
+        eye = np.eye(6 if trail else 5) * lam2
         for it in range(max_iter + 1):
             (px, py, pz), (r00, r01, r02, r10, r11, r12, r20, r21, r22), jac = self._fk_one(q)
             ax, ay, az = r00 * tax + r01 * tay + r02 * taz, r10 * tax + r11 * tay + r12 * taz, \
@@ -525,16 +562,27 @@ class ArmKinematics:
             else:
                 ox, oy, oz = ux * math.pi, uy * math.pi, uz * math.pi
             err = math.sqrt(ex * ex + ey * ey + ez * ez)
-            if err <= tol and ang <= axis_tol:
+            rows = [[c[0] for c in jac], [c[1] for c in jac], [c[2] for c in jac],
+                    [ux * c[3] + uy * c[4] + uz * c[5] for c in jac],
+                    [vx * c[3] + vy * c[4] + vz * c[5] for c in jac]]
+            e = [ex, ey, ez, ux * ox + uy * oy + uz * oz, vx * ox + vy * oy + vz * oz]
+            turn = 0.0
+            if trail:                  # as in ik_batch: the turn about the axis onto the trail's target
+                bx, by, bz = r00 * bx0 + r01 * by0 + r02 * bz0, r10 * bx0 + r11 * by0 + r12 * bz0, \
+                    r20 * bx0 + r21 * by0 + r22 * bz0
+                k = bx * dx + by * dy + bz * dz
+                bx, by, bz = bx - k * dx, by - k * dy, bz - k * dz
+                turn = math.atan2((by * hz - bz * hy) * dx + (bz * hx - bx * hz) * dy + (bx * hy - by * hx) * dz,
+                                  bx * hx + by * hy + bz * hz)
+                rows.append([dx * c[3] + dy * c[4] + dz * c[5] for c in jac])
+                e.append(turn)
+            if err <= tol and ang <= axis_tol and abs(turn) <= axis_tol:
                 ok = True
                 break
             if it == max_iter:
                 break
-            A = np.array([[c[0] for c in jac], [c[1] for c in jac], [c[2] for c in jac],
-                          [ux * c[3] + uy * c[4] + uz * c[5] for c in jac],
-                          [vx * c[3] + vy * c[4] + vz * c[5] for c in jac]])
-            e = np.array([ex, ey, ez, ux * ox + uy * oy + uz * oz, vx * ox + vy * oy + vz * oz])
-            dq = (A.T @ np.linalg.solve(A @ A.T + eye5, e)).tolist()
+            A = np.array(rows)
+            dq = (A.T @ np.linalg.solve(A @ A.T + eye, np.array(e))).tolist()
             big = max(abs(v) for v in dq)
             scale = min(1.0, max_step / max(big, 1e-300))
             q = [q[i] + dq[i] * scale for i in range(n)]
@@ -607,6 +655,25 @@ class ArmKinematics:
             first_bad = int(np.argmin(ok)) if not ok.all() else last + 1
             ok[first_bad:] = False
         return Q, ok
+
+
+def trail_targets(P, D, U):
+    """Where an offset head's ``trail`` should point at nozzle positions ``P``
+    (N, 3) with nozzle axes ``D`` (N, 3, unit), base frame: the horizontal
+    direction from the nozzle towards the base frame's z axis, made
+    perpendicular to the nozzle axis -> (N, 3) unit vectors.  It turns
+    smoothly with the nozzle (by the nozzle's move over its distance from
+    the axis: 0.2 degrees a millimetre 0.3 m out).  On the axis itself, or
+    with a nozzle axis horizontal and pointing at it, ``U`` (N, 3), any
+    direction perpendicular to the axis."""
+    H = np.zeros((len(P), 3))
+    H[:, 0], H[:, 1] = -P[:, 0], -P[:, 1]
+    H -= np.einsum("ij,ij->i", H, D)[:, None] * D
+    norm = np.linalg.norm(H, axis=1)
+    small = norm < 1e-9
+    H[~small] /= norm[~small, None]
+    H[small] = U[small]
+    return H
 
 
 _SHARED = {}

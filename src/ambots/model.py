@@ -98,4 +98,5 @@ def arm_kinematics(arm):
     (an :class:`ArmInstance` of a cell, or a bare :class:`ArmProfile`)."""
     from ambots.kinematics import ArmKinematics
     profile = arm.profile if isinstance(arm, ArmInstance) else arm
-    return ArmKinematics.from_urdf(arm_urdf(profile), base=profile.base_link, tip=profile.tool_link)
+    return ArmKinematics.from_urdf(arm_urdf(profile), base=profile.base_link, tip=profile.tool_link,
+                                   trail=profile.tool_trail)
