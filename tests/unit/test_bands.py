@@ -84,14 +84,15 @@ def _edges(program):
     return int(line.split(" band(s)")[0].split()[-1]), np.array(t)
 
 
-def test_strip_gets_balanced_bands_that_keep_the_zone(strip):
+def test_strip_gets_bands_that_keep_the_zone(strip):
     cell, job = strip
     zone = float(job.programs["kinova"].lines[2].split("seam zone ")[1].split(" mm")[0])
     (k, ta), (kb, tb) = _edges(job.programs["kinova"]), _edges(job.programs["ur10"])
-    assert k == kb >= 4
-    widths = np.diff(ta)
-    assert widths.max() - widths.min() > 5.0              # not equal widths: the near band is narrower
+    assert k == kb >= 2
     assert all(ta[i] + tb[k - 1 - i] >= zone - 1e-6 for i in range(k))
+    # the zone (50 mm: the heads' fan ducts) is well inside each 120 mm half:
+    # two bands, the near one holding about half of each arm's work
+    assert zone < ta[1] < 120.0 and zone < tb[1] < 120.0
 
 
 @pytest.mark.parametrize("seed", (3, 4))

@@ -246,10 +246,10 @@ def test_firmware_check_says_what_a_pose_is_too_close_to(cell, bodies):
     k, u = cell.arms
     check = CollisionCheck(k, cell, margin=0.005)
     Qk = solve(cell, k, bodies["kinova"], [[-0.01, -0.01, 0.0002], [-0.08, -0.01, 0.0002], [0.0, 0.0, -0.01]])
-    qu = solve(cell, u, bodies["ur10"], [[0.08, -0.01, 0.0002]])[0]
+    qu = solve(cell, u, bodies["ur10"], [[0.025, -0.01, 0.0002]])[0]
     assert check.explain(Qk[0]) == "clear" and check(Qk[:2]).all()         # the other arm not heard of yet
     check.update("ur10", qu)
-    # nozzles 90 mm apart across the seam: the real-size wrists overlap
+    # nozzles 35 mm apart across the seam: the two 40 mm fan ducts overlap (105 mm: clear)
     c = clearance_between(bodies["kinova"], Qk[:2], bodies["ur10"], np.stack([qu, qu]))
     assert c[0] < 0 < 0.005 < c[1]
     assert check(Qk[:2]).tolist() == [False, True]
@@ -334,16 +334,24 @@ def test_part_clearance(cell, bodies):
 def test_seam_zone_of_the_default_cell(cell, bodies):
     z = seam_zone(cell)
     k, u = cell.arms
-    # protrusion towards the neighbour: at least the nozzle's radius, and no
-    # more than the worst horizontal direction
+    # protrusion towards the neighbour: at least the head's widest body on the
+    # nozzle axis (the fan duct, 20 mm), and no more than the worst horizontal
+    # direction
+    ducts = {arm.name: next(c.radius for c in arm.profile.head if c.name == "fan_duct") * 1000.0
+             for arm in cell.arms}
     for (a, b), p in z.protrusion_facing_mm.items():
-        assert 25.0 - 1e-6 <= p <= z.protrusion_any_mm[a] + 1e-9
+        assert ducts[a] - 1e-6 <= p <= z.protrusion_any_mm[a] + 1e-9
     assert z.facing_mm == pytest.approx(sum(z.protrusion_facing_mm.values()) + z.margin_mm)
     assert z.any_mm == pytest.approx(sum(z.protrusion_any_mm.values()) + z.margin_mm)
     assert z.facing_mm <= z.any_mm
     assert z.clearance_facing_mm > 0
     zone = seam_zone_mm(cell)                     # rounded up to 0.01 mm (deterministic)
     assert z.facing_mm - 1e-9 <= zone <= z.facing_mm + 0.01 and round(zone * 100) == pytest.approx(zone * 100)
+    # the heads sit 100 mm off their flanges, which trail towards the bases: the
+    # wrists (the UR10's 76 mm, the Kinova's 50 mm bracelet) stay behind the
+    # nozzles, and what faces the other arm is the fan duct (20 mm) and the
+    # hot end's heat sink (22 mm, 8 mm towards the flange: 14 mm in front)
+    assert z.facing_mm == pytest.approx(ducts["kinova"] + ducts["ur10"] + z.margin_mm, abs=1e-3)
     # independent check: both nozzles at the bed centre line, the zone apart, do not touch ...
     n = np.append(seam_normal(cell), 0.0)
     pts = np.array([[0.0, y, h] for y in (-0.1, 0.0, 0.1) for h in (0.0, 0.15)])
@@ -351,19 +359,11 @@ def test_seam_zone_of_the_default_cell(cell, bodies):
     c = clearance_between(bodies["kinova"], solve(cell, k, bodies["kinova"], pts - n * Z / 2),
                           bodies["ur10"], solve(cell, u, bodies["ur10"], pts + n * Z / 2))
     assert np.all(c > 0)
-    # ... but do when they are as close as the protrusions alone allow, less what the
-    # bodies' heights give back: the widest facing bodies are the Kinova's wrist housing
-    # (46 mm, on J5's axis 0.1 + 0.061525 + 0.10593 m above the tip) and the UR10's wrist
-    # (76 mm, on J5's axis through o5, 0.1 + d6 = 0.1922 m above it): 75.3 mm apart in
-    # height, they meet sqrt(122^2 - 75.3^2) = 96 mm apart across the seam, not 122 mm,
-    # so about 26 mm inside the protrusions' sum
-    dz = (0.1 - F.KINOVA_EE[0][2] + F.KINOVA_ORIGINS[5][0][1]) - (0.1 + F.UR10_DH[5][0])
-    reach = F.KINOVA_ENVELOPE["spherical_wrist_2"][0] + F.UR10_ENVELOPE["wrist_2"][0]
-    back = 1000.0 * (reach - np.sqrt(reach ** 2 - dz ** 2))
-    assert back == pytest.approx(26.0, abs=0.1)
-    gap = (z.facing_mm - z.margin_mm - back) / 1000.0
+    np.testing.assert_allclose(c, z.margin_mm / 1000.0, atol=1e-6)     # the two fan ducts, face to face
+    # ... and do when the nozzles are closer than the two ducts' radii
+    gap = (ducts["kinova"] + ducts["ur10"] - 2.0) / 1000.0
     c = clearance_between(bodies["kinova"], solve(cell, k, bodies["kinova"], pts - n * gap / 2),
                           bodies["ur10"], solve(cell, u, bodies["ur10"], pts + n * gap / 2))
-    assert np.any(c < 0)
+    assert np.all(c < 0)
     with pytest.raises(ValueError):
         seam_zone_mm(cell, direction="sideways")

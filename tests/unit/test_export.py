@@ -206,7 +206,7 @@ def test_urscript_is_one_def_with_known_calls_and_finite_numbers(script):
     assert names[:4] == ["textmsg", "set_tcp", "set_tool_digital_out", "movej"]
     assert names[-2:] == ["set_tool_digital_out", "textmsg"]
     # the TCP is the profile's tool offset
-    assert calls[1][1] == "p[0.000000, 0.000000, 0.100000, 0.000000, 0.000000, 0.000000]"
+    assert calls[1][1] == "p[0.100000, 0.000000, 0.200000, 0.000000, 0.000000, 0.000000]"
     assert all(len(line) < 200 for line in script.split("\n"))
 
 

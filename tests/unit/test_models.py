@@ -9,7 +9,7 @@ import pytest
 
 import robot_facts as F
 from ambots import data_path
-from ambots.config import load_arm_profile
+from ambots.config import load_arm_profile, pose_matrix
 from ambots.kinematics import ArmKinematics, chain_from_urdf
 from ambots.model import arm_urdf
 
@@ -109,10 +109,15 @@ def test_nozzle_is_the_tool_offset_from_the_flange(name):
     flange = ArmKinematics.from_urdf(urdf, tip="flange")
     nozzle = ArmKinematics.from_urdf(urdf, tip="nozzle")
     Q = random_q(flange, 20)
-    tool = np.eye(4)
-    tool[:3, 3] = prof.tool_xyz
-    np.testing.assert_allclose(nozzle.fk_batch(Q), flange.fk_batch(Q) @ tool, atol=1e-12)
-    assert prof.tool_xyz[2] == pytest.approx(0.10)
+    tool = pose_matrix(prof.tool_xyz, prof.tool_rpy)
+    N, F = nozzle.fk_batch(Q), flange.fk_batch(Q)
+    np.testing.assert_allclose(N, F @ tool, atol=1e-12)
+    # the trail the IK keeps towards the base: from the nozzle to the flange's
+    # origin, across the nozzle axis (here 100 mm off it, 200 mm along it)
+    back = np.einsum("nji,nj->ni", N[:, :3, :3], F[:, :3, 3] - N[:, :3, 3])     # in the nozzle frame
+    np.testing.assert_allclose(back, np.broadcast_to([-0.10, 0.0, -0.20], back.shape), atol=1e-12)
+    np.testing.assert_allclose(prof.tool_trail, [-1.0, 0.0, 0.0], atol=1e-12)
+    assert prof.tool_turn == "toward_base"
 
 
 @pytest.mark.parametrize("xacro_file, n_joints", [("ur10.xacro", 6), ("kinova_gen3_6dof.xacro", 6),
