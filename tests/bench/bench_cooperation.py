@@ -25,7 +25,7 @@ import numpy as np
 import trimesh
 
 from ambots import data_path
-from ambots.config import default_cell_path, load_cell
+from ambots.config import default_cell_path, load_cell, resolve_path
 from ambots.job import DEMO_MODEL, run_job
 
 SLOW = (0.5, 2.0)
@@ -70,6 +70,60 @@ def models():
     return out
 
 
+#: the print head the profiles carried before session 14: on the flange's
+#: axis, 100 mm out, where turning it about the nozzle axis moves nothing but
+#: the head (for the "before" of the nozzle-to-nozzle distance)
+COAXIAL_HEAD = """tool:
+  xyz: [0.0, 0.0, 0.10]
+  rpy: [0.0, 0.0, 0.0]
+  head:
+    - {name: nozzle, tube: [[0, 0, -0.009], [0, 0, -0.012]], radius: 0.004}
+    - {name: heater_block, tube: [[-0.002, 0, -0.022], [0.010, 0, -0.022]], radius: 0.012}
+    - {name: fan_duct, tube: [[0, 0, -0.025], [0, 0, -0.045]], radius: 0.020}
+    - {name: hot_end, tube: [[0.008, 0, -0.045], [0.008, 0, -0.078]], radius: 0.022}
+    - {name: mount, tube: [[0, 0, -0.090], [0, 0, -0.092]], radius: 0.032}
+"""
+
+
+def with_coaxial_heads(cell, folder):
+    """The cell with every arm's profile copied into ``folder`` with
+    :data:`COAXIAL_HEAD` instead of its own print head."""
+    import yaml
+    profiles = {}
+    for arm in cell.arms:
+        if arm.profile.path in profiles:
+            continue
+        text = open(arm.profile.path).read()
+        start, end = text.index("\ntool:") + 1, text.index("\nreach:") + 1
+        path = os.path.join(folder, os.path.basename(arm.profile.path))
+        with open(path, "w") as f:
+            f.write(text[:start] + COAXIAL_HEAD + text[end:])
+        profiles[arm.profile.path] = path
+    doc = yaml.safe_load(open(cell.path))
+    for entry in doc["arms"]:
+        entry["profile"] = profiles[resolve_path(entry["profile"], cell.path)]
+    path = os.path.join(folder, os.path.basename(cell.path))
+    with open(path, "w") as f:
+        yaml.safe_dump(doc, f)
+    return load_cell(path)
+
+
+def nozzle_distances(cells):
+    """Item 2 of the issue: how near two arms' nozzles may come across the
+    seam between them (the seam zone: both arms' bodies facing each other
+    plus the 10 mm margin, :func:`ambots.collision.seam_zones_mm`), with the
+    print head on the flange's axis (before) and on the profiles' bracket."""
+    from ambots.collision import seam_zones_mm
+    with tempfile.TemporaryDirectory() as tmp:
+        for cell in cells:
+            before = seam_zones_mm(with_coaxial_heads(cell, tmp))
+            after = seam_zones_mm(cell)
+            for (a, b), mm in sorted(after.items()):
+                if a < b:
+                    print("nozzle to nozzle across the seam, %-10s %-8s %-8s head on the flange's axis %6.1f mm, "
+                          "on the bracket %6.1f mm" % (cell.name, a, b, before[a, b], mm), flush=True)
+
+
 def _best_single(job):
     alone = [c for c in job.candidates if len(c.arms) == 1 and c.makespan_s is not None]
     return min(alone, key=lambda c: c.makespan_s) if alone else None
@@ -103,6 +157,7 @@ def _row(label, cell, path, simulate_runs):
 def main():
     two = load_cell(default_cell_path())
     four = load_cell(data_path("config", "cells", "four_arms.yaml"))
+    nozzle_distances([two, four])
     sim = os.environ.get("BENCH_COOPERATION_SIM", "1") != "0"
     worst = 0.0
     with tempfile.TemporaryDirectory() as tmp:
