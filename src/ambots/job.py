@@ -355,6 +355,28 @@ def _plan(parts, sliced, programs, arms, how, cell):
     return parts, sliced, programs, Candidate(arms, how, t, why, programs, figures, events)
 
 
+def _fastest_schedule(plan, cell, mode, idle):
+    """A scheduled timeline's plan (three or more arms around a point) built
+    with each of :data:`ambots.coordinate.CHUNK_BAND_CHOICES` chunk bands
+    per seam, timed by the one timing law, the fastest kept (ties: the
+    first built); any other plan as it is."""
+    from ambots.coordinate import CHUNK_BAND_CHOICES, read_sliced
+    parts, sliced, programs, candidate = plan
+    bands = {p.chunk_bands for p in programs.values()}
+    if None in bands or candidate.makespan_s is None:
+        return plan
+    read = {n: read_sliced(t, "%s.gcode" % n) if isinstance(t, str) else t for n, t in sliced.items()}
+    best = plan
+    for b in CHUNK_BAND_CHOICES:
+        if b in bands:
+            continue
+        other = _plan(parts, sliced, coordinate(read, parts, cell, mode, idle=idle, chunk_bands=b),
+                      candidate.arms, candidate.how, cell)
+        if other[3].makespan_s is not None and other[3].makespan_s < best[3].makespan_s:
+            best = other
+    return best
+
+
 def _alone(mesh, cell, arm, text, idle, settings, read, reach=None):
     """The whole model by ``arm`` alone: (parts, sliced, programs, Candidate).
     ``read``: {} shared by the arms, where the model's G-code ``text`` is
@@ -394,7 +416,8 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
         parts = split(job.mesh, cell, arms, seam, settings, reach)
         sliced = slice_parts(parts, slicer, settings, job.mesh)
         programs = coordinate(sliced, parts, cell, mode, idle=idle)
-        plans.append(_plan(parts, sliced, programs, [a.name for a in arms], mode, cell))
+        plans.append(_fastest_schedule(_plan(parts, sliced, programs, [a.name for a in arms], mode, cell), cell,
+                                       mode, idle))
     if len(arms) == 1:                   # one arm: its plan (an arm that cannot reach the model is an error)
         parts = split(job.mesh, cell, arms, seam, settings)
         sliced = slice_parts(parts, slicer, settings, job.mesh)

@@ -128,3 +128,31 @@ def test_unknown_arm_and_missing_file_are_clear_errors(tmp_path, cube_stl):
     assert r.returncode == 2 and "unknown arm 'panda'" in r.stderr
     r = slice_cli(str(tmp_path / "nope.stl"), "--out", str(tmp_path))
     assert r.returncode == 2 and "nope.stl" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_a_scheduled_plan_keeps_its_fastest_chunk_bands(tmp_path):
+    """Four arms in the corners are a scheduled timeline: the job builds it
+    with each of CHUNK_BAND_CHOICES chunk bands per seam and keeps the
+    fastest.  Each alternative, built again here from the job's parts and
+    G-code and timed by the one timing law, is no faster than the plan
+    kept, and at least two of them differ (the choice matters)."""
+    from ambots.coordinate import CHUNK_BAND_CHOICES
+    from ambots.estimate import estimate_programs
+    from ambots.job import coordinate
+    cell = load_cell(data_path("config", "cells", "four_arms.yaml"))
+    path = str(tmp_path / "plate.stl")
+    box = trimesh.creation.box([150.0, 150.0, 0.6])
+    box.apply_translation((0.0, 0.0, 0.3))
+    box.export(path)
+    job = run_job(path, cell, list(cell.arms))
+    kept = job.candidates[0].makespan_s
+    bands = {p.chunk_bands for p in job.programs.values()}
+    assert len(bands) == 1 and bands <= set(CHUNK_BAND_CHOICES), bands
+    times = {}
+    for b in CHUNK_BAND_CHOICES:
+        programs = coordinate(job.sliced, job.parts, cell, chunk_bands=b)
+        assert {p.chunk_bands for p in programs.values()} == {b}
+        times[b] = estimate_programs(programs, cell)["makespan_s"]
+    assert kept <= min(times.values()) + 1e-6, (kept, times)
+    assert times[bands.pop()] == pytest.approx(kept, abs=1e-6)
+    assert max(times.values()) > min(times.values()) * 1.001, times

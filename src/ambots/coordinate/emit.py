@@ -37,6 +37,9 @@ class ArmProgram:
     #: the events of :attr:`lines` as the emitter wrote them (:meth:`_Events.result`),
     #: or None: :meth:`parse` then parses the text
     events: Optional[tuple] = None
+    #: a scheduled timeline's chunk bands per seam (:func:`~ambots.coordinate.build_programs`'s
+    #: ``chunk_bands``), None for the other plans
+    chunk_bands: Optional[int] = None
 
     @property
     def text(self):

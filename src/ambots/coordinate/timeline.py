@@ -68,7 +68,7 @@ def timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent,
         emitters[n] = Emitter(arm_of[n], "concurrent", extra).steps(_steps(acts[n], seams.names, park[n], n_layers))
     resolve_waits(emitters)
     return {n: ArmProgram(arm_of[n], "concurrent", emitters[n].lines, read[n][0], n_layers, bands + 1,
-                          start_first=True, events=emitters[n].events()) for n in seams.names}
+                          start_first=True, events=emitters[n].events(), chunk_bands=bands) for n in seams.names}
 
 
 class Seams:
