@@ -11,9 +11,10 @@ planner times its candidates), and the plan the planner chooses
 
 Then every chosen plan runs in the offline simulation on one clock
 (``python -m ambots plan``'s engine: every move planned, the real-size
-bodies checked continuously), once as planned and once with every block
+bodies checked continuously), once as planned, then with every block
 of each arm's motion stretched by a random factor in [0.5, 2] (``--slow
-ARM=0.5:2``, seed 1): contacts must be 0 and the simulated makespan is
+ARM=0.5:2``, seeds 1, 2 and 3 when more than one arm prints, seed 1
+otherwise): contacts must be 0 and the simulated makespan is
 printed next to the estimate.  ``BENCH_COOPERATION_SIM=0`` skips the
 simulations (the estimates take about a minute in all)."""
 import math
@@ -29,6 +30,8 @@ from ambots.config import default_cell_path, load_cell, resolve_path
 from ambots.job import DEMO_MODEL, run_job
 
 SLOW = (0.5, 2.0)
+#: the seeds of the random per-move factors (several for plans of more than one arm)
+SEEDS = (1, 2, 3)
 
 
 def _lifted(m):
@@ -66,6 +69,7 @@ def models():
         "L (200 x 150 mm)": _lifted(ell),
         "hex plate (276 x 174 mm)": _lifted(plate),
         "plate 300 x 300 x 4 (four arms)": _lifted(trimesh.creation.box((300.0, 300.0, 4.0))),
+        "box 300 x 300 x 20 (four arms)": _lifted(trimesh.creation.box((300.0, 300.0, 20.0))),
     }
     return out
 
@@ -143,9 +147,12 @@ def _row(label, cell, path, simulate_runs):
                ratio(together), "+".join(chosen.arms), ratio(chosen), wall))
     print(line, flush=True)
     if simulate_runs:
-        for slow, tag in ((None, "as planned"), ({n: SLOW for n in job.programs}, "0.5-2x per move, seed 1")):
+        seeds = SEEDS if len(chosen.arms) > 1 else SEEDS[:1]     # one arm: nothing to meet but the bed and part
+        runs = [(None, "as planned", 0)] + [({n: SLOW for n in job.programs}, "0.5-2x per move, seed %d" % seed, seed)
+                                            for seed in seeds]
+        for slow, tag, seed in runs:
             t1 = time.perf_counter()
-            res = simulate(job.programs, cell, slow=slow, seed=1)
+            res = simulate(job.programs, cell, slow=slow, seed=seed)
             motion = check_motion(res, cell)
             print("    simulated (%s): makespan %.0f s (estimate %.0f s), %s, contacts %d, closest %s mm; %.0f s wall"
                   % (tag, res.makespan_s, chosen.makespan_s, "finished" if res.finished else "NOT finished",
