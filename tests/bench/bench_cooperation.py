@@ -68,8 +68,8 @@ def models():
         "ring (140 mm)": _lifted(ring),
         "L (200 x 150 mm)": _lifted(ell),
         "hex plate (276 x 174 mm)": _lifted(plate),
-        "plate 300 x 300 x 4 (four arms)": _lifted(trimesh.creation.box((300.0, 300.0, 4.0))),
-        "box 300 x 300 x 20 (four arms)": _lifted(trimesh.creation.box((300.0, 300.0, 20.0))),
+        "plate 300 x 300 x 4": _lifted(trimesh.creation.box((300.0, 300.0, 4.0))),
+        "box 300 x 300 x 20": _lifted(trimesh.creation.box((300.0, 300.0, 20.0))),
     }
     return out
 
@@ -172,7 +172,7 @@ def main():
         for name, mesh in models().items():
             path = os.path.join(tmp, "".join(c if c.isalnum() else "_" for c in name) + ".stl")
             mesh.export(path)
-            cells = [four] if "four arms" in name else [two, four] if "plate" in name or "ring" in name else [two]
+            cells = [two, four] if "plate" in name or "ring" in name or "box 300" in name else [two]
             rows.append((name, path, cells))
         for name, path, cells in rows:
             for cell in cells:
