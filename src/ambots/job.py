@@ -36,8 +36,6 @@ class Candidate:
     makespan_s: float = None
     note: str = None
     programs: dict = field(default=None, repr=False)   #: {arm name: ArmProgram}, when built
-    #: {arm name: :func:`ambots.gcode.summarize` of its program}, from the parse that timed them
-    figures: dict = field(default=None, repr=False)
     #: {arm name: G-code events of its program}, the one parse of each program
     events: dict = field(default=None, repr=False)
 
@@ -96,9 +94,8 @@ class Job:
     def summary(self):
         """Per-arm figures of the programs (``python -m ambots info`` keys)."""
         from ambots.gcode import summarize
-        chosen = self.chosen
-        # the programs' figures from the one parse that timed them (parsed here if not timed)
-        figures = (chosen.figures if chosen is not None and chosen.programs is self.programs else None) or {}
+        # the programs' figures, from the one parse that timed them (parsed here if not timed);
+        # summed for the chosen plan only
         out = {"model": self.model_path, "cell": self.cell.name, "mode": self.mode, "slicer": self.slicer,
                "model_volume_mm3": float(self.mesh.volume) if self.mesh is not None else None,
                "one_arm_estimate_s": self.one_arm_estimate_s, "plan": self.plan_summary(), "arms": {}}
@@ -110,7 +107,7 @@ class Job:
             name = part.arm.name
             if name not in self.programs:
                 continue
-            s = figures.get(name) or summarize(events[name])
+            s = summarize(events[name])
             out["arms"][name] = {
                 "id": part.arm.id, "part_volume_mm3": part.volume, "layers": s["layers"],
                 "moves": s["moves"], "extrude_path_mm": s["extrude_path_mm"],
@@ -333,26 +330,26 @@ TIE_SHARE = 0.03
 
 def _timed(programs, cell):
     """Makespan of programs by the one timing law (s), or None and why not,
-    and the programs' figures ({arm name: :func:`ambots.gcode.summarize`},
-    None if not parsed): each program is parsed once, for both."""
+    and the programs' events ({arm name: events}, None if not parsed): each
+    program is parsed once (the emitter's programs: not at all, see
+    :meth:`ambots.coordinate.ArmProgram.parse`), for the timing and later
+    the chosen plan's figures (:meth:`Job.summary`)."""
     from ambots.estimate import estimate_programs
     from ambots.errors import AmbotsError
-    from ambots.gcode import summarize
     try:
         events = {n: p.parse() for n, p in programs.items()}
         est = estimate_programs(programs, cell, events=events)
     except AmbotsError as exc:
-        return None, str(exc), None, None
-    figures = {n: summarize(ev) for n, ev in events.items()}
+        return None, str(exc), None
     if est["errors"]:
-        return None, "; ".join(est["errors"].values()), figures, events
-    return est["makespan_s"], None, figures, events
+        return None, "; ".join(est["errors"].values()), events
+    return est["makespan_s"], None, events
 
 
 def _plan(parts, sliced, programs, arms, how, cell):
     """A plan's (parts, sliced, programs, Candidate), timed."""
-    t, why, figures, events = _timed(programs, cell)
-    return parts, sliced, programs, Candidate(arms, how, t, why, programs, figures, events)
+    t, why, events = _timed(programs, cell)
+    return parts, sliced, programs, Candidate(arms, how, t, why, programs, events)
 
 
 def _fastest_schedule(plan, cell, mode, idle):

@@ -41,6 +41,7 @@ import numpy as np
 import ambots
 from ambots.errors import AmbotsError, ConfigError
 from ambots.mesh import to_manifold, source_name
+from ambots.sliced import MoveRecord, SlicedText
 from ambots.support import SUPPORT, SUPPORT_INTERFACE, overhangs, support_layers
 
 #: G-code feature names, as PrusaSlicer writes them after ``;TYPE:``
@@ -641,6 +642,8 @@ class GcodeWriter:
         if s.nozzle_temperature_c is not None:
             self.chunks.append("M109 S%d ; set temperature and wait for it to be reached\n"
                                % round(s.nozzle_temperature_c))
+        self.record = MoveRecord()           # the G1 lines as the parser will read them
+        self.record.text("".join(self.chunks))
         self.feeds = {EXTERNAL_PERIMETER: s.external_perimeter_feedrate_mm_min,
                       PERIMETER: s.perimeter_feedrate_mm_min,
                       SOLID_INFILL: s.solid_infill_feedrate_mm_min,
@@ -655,16 +658,33 @@ class GcodeWriter:
             self._retract()
         self.z = float(z)
         self.layers += 1
-        self.chunks.append(";LAYER_CHANGE\n;Z:%.3f\n;HEIGHT:%.3f\nG1 Z%.3f F%d\n"
-                           % (z, height, z, self.s.z_feedrate_mm_min))
+        self.record.marker()
+        self.chunks.append(";LAYER_CHANGE\n;Z:%.3f\n;HEIGHT:%.3f\n" % (z, height))
+        self.record.text(self.chunks[-1])
+        self._move(z=z, f=self.s.z_feedrate_mm_min)
         self.feature = None
+
+    def _move(self, x=None, y=None, z=None, e=None, f=None):
+        """One ``G1`` line with these words (X, Y, Z 3 decimals, E 5, F an
+        integer), recorded as written."""
+        x = None if x is None else "%.3f" % x
+        y = None if y is None else "%.3f" % y
+        z = None if z is None else "%.3f" % z
+        e = None if e is None else "%.5f" % e
+        f = None if f is None else "%d" % f
+        line = "G1"
+        for k, w in (("X", x), ("Y", y), ("Z", z), ("E", e), ("F", f)):
+            if w is not None:
+                line += " " + k + w
+        self.chunks.append(line + "\n")
+        self.record.move(x, y, z, e, f)
 
     def set_z(self, z):
         """Move the nozzle to height ``z`` (mm) within the layer (the
         support's contact layer is printed lower than the layer's top)."""
         z = float(z)
         if abs(z - self.z) > 1e-9:
-            self.chunks.append("G1 Z%.3f F%d\n" % (z, self.s.z_feedrate_mm_min))
+            self._move(z=z, f=self.s.z_feedrate_mm_min)
             self.z = z
 
     def extrude(self, path, height):
@@ -688,14 +708,16 @@ class GcodeWriter:
         self.travel(start)
         if feature != self.feature:
             self.chunks.append(";TYPE:%s\n;WIDTH:%.3f\n" % (feature, self.s.bead_width_mm))
+            self.record.text(self.chunks[-1])
             self.feature = feature
         feed = self.feeds[feature]
         if self.first_layer:
             feed = min(feed, self.s.first_layer_feedrate_mm_min)
         self.filament_mm += float(e.sum())
         # one %-format for the whole path: the per-point loop runs in C
-        self.chunks.append("G1 F%d\n" % feed)
+        self._move(f=feed)
         self.chunks.append(("G1 X%.3f Y%.3f E%.5f\n" * len(e)) % tuple(rows))
+        self.record.block(self.chunks[-1], len(e))
 
     def extrude_paths(self, paths, height, z=None):
         """:meth:`extrude` of each of ``paths`` in turn (the same text), the
@@ -737,19 +759,18 @@ class GcodeWriter:
             self._retract()
         if dist > 1e-9:
             if self.retracted and s.z_hop_mm > 0:
-                self.chunks.append("G1 Z%.3f F%d\n" % (self.z + s.z_hop_mm, s.z_feedrate_mm_min))
-            self.chunks.append("G1 X%.3f Y%.3f F%d\n" % (xy[0], xy[1], s.travel_feedrate_mm_min))
+                self._move(z=self.z + s.z_hop_mm, f=s.z_feedrate_mm_min)
+            self._move(x=xy[0], y=xy[1], f=s.travel_feedrate_mm_min)
             if self.retracted and s.z_hop_mm > 0:
-                self.chunks.append("G1 Z%.3f F%d\n" % (self.z, s.z_feedrate_mm_min))
+                self._move(z=self.z, f=s.z_feedrate_mm_min)
         self.xy = np.asarray(xy, dtype=float)
         if self.retracted:
-            self.chunks.append("G1 E%.5f F%d\n" % (s.retract_length_mm, s.retract_feedrate_mm_min))
+            self._move(e=s.retract_length_mm, f=s.retract_feedrate_mm_min)
             self.retracted = False
 
     def _retract(self):
         if not self.retracted and self.s.retract_length_mm > 0:
-            self.chunks.append("G1 E-%.5f F%d\n" % (self.s.retract_length_mm,
-                                                     self.s.retract_feedrate_mm_min))
+            self._move(e=-self.s.retract_length_mm, f=self.s.retract_feedrate_mm_min)
             self.retracted = True
 
     def finish(self):
@@ -757,11 +778,14 @@ class GcodeWriter:
         self._retract()
         if self.s.nozzle_temperature_c is not None:
             self.chunks.append("M104 S0 ; turn off temperature\n")
+            self.record.text(self.chunks[-1])
         volume = self.filament_mm * self.s.filament_area_mm2
         self.chunks.append("\n; total layers count = %d\n; filament used [mm] = %.2f\n"
                            "; filament used [cm3] = %.2f\n"
                            % (self.layers, self.filament_mm, volume / 1000.0))
-        return "".join(self.chunks)
+        self.record.text(self.chunks[-1])
+        text = "".join(self.chunks)
+        return SlicedText(text, self.record.layers(text))
 
 
 # ============================================================ prusa-slicer

@@ -529,3 +529,37 @@ def test_the_emitters_events_are_the_parsers(cell, job, n_arm_jobs):
     # a line the events cannot follow (a line break inside a header line): no events
     em = Emitter(parts[0].arm, "concurrent", ["; a\nG1 X5"])
     assert em.events() is None
+
+
+def test_chains_written_at_once_are_written_as_one_by_one(cell, monkeypatch):
+    """The emitter writes a chain of extrusions (each starting where the one
+    before ended) with one format and reads its numbers back at once: the
+    lines must be those it writes one by one, and its events the parser's
+    (E added up in order: a 300-point spiral, so rounding shows)."""
+    from ambots.coordinate import emit
+    from ambots.coordinate.steps import Step
+    arm = cell.arms[0]
+    t = np.linspace(0.0, 12 * np.pi, 301)
+    pts = [(float(30 * np.cos(a) * a / 40), float(30 * np.sin(a) * a / 40), 0.2 + 1e-4 * k)
+           for k, a in enumerate(t)]
+    spiral = [Segment(p, q, 0.0123456789 * (1 + k % 7), 1200.0 + k % 3, True, k + 10, 0)
+              for k, (p, q) in enumerate(zip(pts[:-1], pts[1:]))]
+    short = spiral[:5]
+    steps = [Step(layers=[0.2], approach=5.0, pieces=spiral), Step(pieces=short), Step(layers=[0.4], pieces=spiral[7:])]
+
+    def write():
+        em = emit.Emitter(arm, "concurrent").steps(steps)
+        return em.lines, em.events()
+
+    calls = []
+    real = emit._Events.run
+    monkeypatch.setattr(emit._Events, "run", lambda self, *a: calls.append(a[2]) or real(self, *a))
+    lines, events = write()
+    assert calls and max(calls) == 300                  # the chains went the fast way
+    monkeypatch.setattr(emit, "_RUN", 10 ** 9)
+    one_by_one, events_1 = write()
+    assert lines == one_by_one
+    text = "\n".join(lines) + "\n"
+    parsed = tuple(parse_gcode_text(text, "x.gcode"))
+    assert events[0] == parsed == events_1[0]
+    assert len([e for e in parsed if type(e) is Segment and e.extrude]) > 590

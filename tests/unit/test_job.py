@@ -67,8 +67,10 @@ def test_a_job_parses_each_g_code_once(tmp_path, cube_stl, cell, monkeypatch):
     """The planner's three plans (both arms; each arm alone on the same
     G-code of the whole model): every sliced G-code is parsed once, and no
     program is parsed at all: the estimate and job.json use the events the
-    emitter kept, which are the parser's."""
+    emitter kept, which are the parser's.  The built-in slicer's G-code is
+    not parsed either: it comes with its writer's reading, the parser's."""
     import ambots.gcode
+    from ambots.coordinate import read_sliced
     parsed = []
     real = ambots.gcode.iter_gcode
 
@@ -78,15 +80,23 @@ def test_a_job_parses_each_g_code_once(tmp_path, cube_stl, cell, monkeypatch):
         return real(lines, *args, **kw)
 
     monkeypatch.setattr(ambots.gcode, "iter_gcode", counting)
-    job = run_job(cube_stl, cell)
-    write_job(job, str(tmp_path))
-    assert len(job.candidates) == 3 and all(c.programs for c in job.candidates)
-    programs = [p.text.rstrip("\n") for c in job.candidates for p in c.programs.values()]
-    assert len(programs) == 4 and not any(text in parsed for text in programs)
-    assert len(parsed) == len(set(parsed)) == 3              # the pair's parts, the whole model
-    for c in job.candidates:
-        for name, program in c.programs.items():
-            assert program.parse() == list(real(program.text.splitlines(), name + ".gcode"))
+    for slicer in ("prusa", "builtin"):
+        parsed.clear()
+        job = run_job(cube_stl, cell, slicer=slicer)
+        write_job(job, str(tmp_path / slicer))
+        assert len(job.candidates) == 3 and all(c.programs for c in job.candidates)
+        programs = [p.text.rstrip("\n") for c in job.candidates for p in c.programs.values()]
+        assert len(programs) == 4 and not any(text in parsed for text in programs)
+        if slicer == "prusa":
+            assert len(parsed) == len(set(parsed)) == 3          # the pair's parts, the whole model
+        else:
+            assert parsed == []
+            for text in job.sliced.values():
+                assert text.layers is not None
+                assert read_sliced(text, "x") == read_sliced(str(text), "x")
+        for c in job.candidates:
+            for name, program in c.programs.items():
+                assert program.parse() == list(real(program.text.splitlines(), name + ".gcode"))
 
 
 def test_a_model_larger_than_the_bed_is_refused_saying_by_how_much(tmp_path, cell):

@@ -266,6 +266,53 @@ def test_retraction_before_long_travels():
     assert all(float(up) - float(down) == pytest.approx(0.4) for up, down in hops)
 
 
+# ------------------------------------------------------ the writer's reading
+
+@pytest.mark.parametrize("name", NAMES)
+def test_the_writers_reading_is_the_parsers(name):
+    """The built-in slicer's text carries its writer's reading of it
+    (:class:`ambots.sliced.SlicedText`), which the coordinator takes instead
+    of parsing: it must be the parser's, segment for segment (positions,
+    E as the parser adds it up, feedrates, line numbers, layers), with and
+    without support, z-hop, retraction and a first layer, and on an
+    arm's part cut from a whole model."""
+    from ambots.coordinate.steps import read_sliced
+    mesh = placed(name)
+    settings = [SETTINGS, SliceSettings(support=True), SliceSettings(z_hop_mm=0.4, support=False),
+                SliceSettings(retract_length_mm=0.0, support=False, first_layer_feedrate_mm_min=700.0)]
+    half = place_on_bed(MODELS[name]()).slice_plane([0, 0, 0], [1, 0, 0], cap=True)
+    texts = [slice_mesh(mesh, s) for s in settings]
+    texts.append(slice_mesh(half, SliceSettings(support=True), whole=mesh, keep=[((1.0, 0.0, 0.0), 0.0)]))
+    for text in texts:
+        assert text.layers is not None
+        handed, parsed = read_sliced(text, "x.gcode"), read_sliced(str(text), "x.gcode")
+        assert handed == parsed
+        assert sum(len(v) for v in parsed.layers.values()) > 200
+
+
+def test_a_reading_that_may_differ_from_the_text_is_given_up():
+    """The writer's reading is dropped, so that the text is parsed, when
+    its line or G1 count is not the text's or a number is beyond the
+    parser's limit."""
+    from ambots.sliced import MoveRecord
+    text = slice_mesh(placed("cube"), SETTINGS)
+    ok = MoveRecord()
+    ok.text("; a\n")
+    ok.move("1.000", "2.000", None, None, "1200")
+    assert ok.layers("; a\nG1 X1.000 Y2.000 F1200\n") == {0: [Segment((0.0, 0.0, 0.0), (1.0, 2.0, 0.0), 0.0,
+                                                                         1200.0, False, 2, -1)]}
+    for other in ("; a\nG1 X1.000 Y2.000 F1200\nG1 X3\n",        # a G1 line it did not write
+                  "; a\r; b\nG1 X1.000 Y2.000 F1200\n"):            # a line break the parser counts
+        rec = MoveRecord()
+        rec.text("; a\n")
+        rec.move("1.000", "2.000", None, None, "1200")
+        assert rec.layers(other) is None
+    far = MoveRecord()
+    far.move("2000000.000", None, None, None, "1200")
+    assert far.layers("G1 X2000000.000 F1200\n") is None
+    assert text.layers is not None and str(text) == text
+
+
 # ----------------------------------------------------------------- refusals
 
 def test_settings_are_checked():

@@ -129,6 +129,29 @@ class _Events:
                                                self.layer)))
         self.x, self.y, self.z, self.e = nx, ny, nz, ne
 
+    def run(self, lineno, text, k):
+        """``k`` lines ``G1 X.. Y.. Z.. E.. F..`` (``text``, each ending in a
+        line break) from line ``lineno`` on: :meth:`move` of each, its
+        numbers read back from the text at once.  Only after the first layer
+        marker (:meth:`move` finds the layers before it by Z)."""
+        lim = self.lim
+        nums = np.array(text.replace("G1 X", "").replace(" Y", " ").replace(" Z", " ").replace(" E", " ")
+                        .replace(" F", " ").split(), dtype=float).reshape(k, 5)
+        if not self.rel_e or (np.abs(nums) > lim).any() or (nums[:, 4] <= 0).any():
+            self.ok = False
+        # the running filament total, added up in order as :meth:`move` does
+        e = np.cumsum(np.concatenate([[self.e], nums[:, 3]]))
+        de = (e[1:] - e[:-1]).tolist()
+        x, y, z = nums[:, 0].tolist(), nums[:, 1].tolist(), nums[:, 2].tolist()
+        f = nums[:, 4].tolist()
+        ends = list(zip(x, y, z))
+        starts = [(self.x, self.y, self.z)] + ends[:-1]
+        layer, new = self.layer, _new_segment
+        self.out += [new(Segment, (a, b, d, fr, d > 0.0, n, layer))
+                     for a, b, d, fr, n in zip(starts, ends, de, f, range(lineno, lineno + k))]
+        self.x, self.y, self.z = ends[-1]
+        self.e, self.feed = float(e[-1]), f[-1]
+
     def result(self, lines):
         """(events, number of lines, hash of the text) for :class:`ArmProgram`, or None."""
         if not self.ok:
@@ -138,6 +161,12 @@ class _Events:
 
 #: characters that end a line for :meth:`str.splitlines` (the parser's)
 _BREAKS = "\n\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029"
+
+
+#: extrusions chained end to start that :meth:`_Writer.segments` writes at
+#: once (fewer: one by one, cheaper than numpy's cost per call)
+_RUN = 8
+_RUN_LINE = "G1 X%.3f Y%.3f Z%.3f E%.5f F%.0f\n"
 
 
 class _Writer:
@@ -247,7 +276,10 @@ class _Writer:
 
     def segments(self, segs):
         lines, move = self.lines, self.events.move
-        for s in segs:
+        n, i = len(segs), 0
+        while i < n:
+            s = segs[i]
+            i += 1
             moved = s.start != s.end
             if not moved:
                 if s.e:
@@ -259,6 +291,18 @@ class _Writer:
             x, y, z = s.end
             if s.extrude:
                 self.retracted = False
+                j = i                   # a chain of extrusions from here: written at once
+                while j < n and segs[j].extrude and segs[j].start == segs[j - 1].end and segs[j].start != segs[j].end:
+                    j += 1
+                if j - i + 1 >= _RUN and self.events.markers:
+                    run = segs[i - 1:j]
+                    text = (_RUN_LINE * len(run)) % tuple([v for q in run for v in (*q.end, q.e, q.feedrate)])
+                    first = len(lines) + 1
+                    lines += text.split("\n")[:-1]
+                    self.events.run(first, text, len(run))
+                    self.pos = run[-1].end
+                    i = j
+                    continue
                 lines.append("G1 X%.3f Y%.3f Z%.3f E%.5f F%.0f" % (x, y, z, s.e, s.feedrate))
                 move(len(lines), x, y, z, s.e, s.feedrate)
             else:

@@ -34,7 +34,13 @@ class Sliced(NamedTuple):
 
 def read_sliced(text, path):
     """Sanitised slicer G-code -> :class:`Sliced` (parsed once: a job passes
-    this on instead of the text when several plans use the same G-code)."""
+    this on instead of the text when several plans use the same G-code).
+    The built-in slicer's text (:class:`ambots.sliced.SlicedText`) is not
+    parsed: its writer's reading of it is taken (the same segments; it has
+    no A-series line to strip)."""
+    layers = getattr(text, "layers", None)
+    if layers is not None:
+        return Sliced([], {k: list(v) for k, v in layers.items()})
     clean, removed = sanitize_gcode(text, path, trusted=False, mode="strip")
     layers: Dict[int, List[Segment]] = {}
     for ev in parse_gcode_text(clean, path):
