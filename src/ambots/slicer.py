@@ -244,8 +244,14 @@ class BuiltinSlicer:
         self.settings = settings or SliceSettings()
 
     def slice(self, mesh, whole=None, keep=None):
-        """G-code text (str) for ``mesh`` (trimesh.Trimesh, mm, on the bed);
-        ``whole``, ``keep``: see :func:`slice_mesh`."""
+        """G-code text (:class:`ambots.sliced.SlicedText`) for ``mesh``
+        (trimesh.Trimesh, mm, on the bed); ``whole``, ``keep``: see
+        :func:`slice_mesh`."""
+        return self.write(self.toolpaths(mesh, whole, keep), source_name(mesh))
+
+    def toolpaths(self, mesh, whole=None, keep=None):
+        """Steps 1-4 for ``mesh``: one :class:`LayerPaths` per layer with
+        something to print, from the bed up."""
         s = self.settings
         _check_above_bed(mesh)
         solid = to_manifold(mesh)
@@ -270,7 +276,7 @@ class BuiltinSlicer:
             whole_outlines, whole_heights, over, spans = ctx.layers()
             supports = (support_layers(whole_outlines, whole_heights, s, keep, over) + supports)[:len(outlines)]
             bridges = (spans + bridges)[:len(outlines)]
-        writer = GcodeWriter(s, source_name(mesh))
+        out = []
         for i, (z, h, outline, interior) in enumerate(zip(z_tops, heights, outlines, interiors)):
             sup = supports[i]
             if outline.is_empty() and sup is None:
@@ -278,17 +284,48 @@ class BuiltinSlicer:
             angle = math.radians(s.infill_angle_deg + 90.0 * (i % 2))
             islands = [plan_island(island, interior, h, angle, s, bridges[i])  # 3.-4. perimeters, infill
                        for island in outline.decompose()]
-            writer.layer_change(z, h, first=(i == 0))
-            if sup is not None:          # support first: the contact layer z_gap lower, then the rest
-                if sup.contact:
-                    writer.extrude_paths(order_paths(sup.contact, writer.xy), h - s.support_z_gap_mm,
+            out.append(LayerPaths(i, float(z), float(h), sup.contact if sup is not None else None,
+                                  sup.paths if sup is not None else None, islands))
+        return out
+
+    def write(self, layers, name="model", clip=None):
+        """Steps 5-6: G-code (:class:`ambots.sliced.SlicedText`) of
+        ``layers`` (:meth:`toolpaths`); ``clip``: only what lies in this
+        prism (:func:`ambots.seam_clip.clip_layer`), e.g. an arm's part of
+        the whole model's toolpaths."""
+        from ambots.seam_clip import clip_layer
+        s = self.settings
+        writer = GcodeWriter(s, name)
+        for lp in layers:
+            if clip is not None:
+                lp = clip_layer(lp, clip, link_max=2.0 * s.bead_width_mm)   # plan_island's
+                if lp is None:
+                    continue
+            z, h = lp.z, lp.height
+            writer.layer_change(z, h, first=(lp.index == 0))
+            if lp.support is not None:   # support first: the contact layer z_gap lower, then the rest
+                if lp.contact:
+                    writer.extrude_paths(order_paths(lp.contact, writer.xy), h - s.support_z_gap_mm,
                                          z=z - s.support_z_gap_mm)
                 writer.set_z(z)
-                writer.extrude_paths(order_paths(sup.paths, writer.xy), h)
+                writer.extrude_paths(order_paths(lp.support, writer.xy), h)
             # 5. ordering (from where the nozzle is at the layer change), then
             # 6. G-code, with travel and retraction
-            writer.extrude_paths([path for paths in order_islands(islands, writer.xy) for path in paths], h)
+            writer.extrude_paths([path for paths in order_islands(lp.islands, writer.xy) for path in paths], h)
         return writer.finish()
+
+
+class LayerPaths(NamedTuple):
+    """One layer's toolpaths (:meth:`BuiltinSlicer.toolpaths`): its
+    ``index`` from the bed, top ``z`` and ``height`` (mm), the support's
+    contact paths and other paths (None: no support in this layer), and
+    per island its groups of paths (:func:`plan_island`)."""
+    index: int
+    z: float
+    height: float
+    contact: Optional[list]
+    support: Optional[list]
+    islands: list
 
 
 class WholeModel:
@@ -302,6 +339,24 @@ class WholeModel:
         self._layers = None
         if layers is not None:
             self._layers = tuple(layers) + overhangs(layers[0], settings)
+
+    def toolpaths(self):
+        """The whole model's :class:`LayerPaths` (:meth:`BuiltinSlicer.toolpaths`),
+        made once."""
+        if getattr(self, "_paths", None) is None:
+            self._paths = BuiltinSlicer(self.settings).toolpaths(self.mesh, whole=self)
+        return self._paths
+
+    def text(self):
+        """The whole model's G-code (:class:`ambots.sliced.SlicedText`), written once."""
+        if getattr(self, "_text", None) is None:
+            self._text = BuiltinSlicer(self.settings).write(self.toolpaths(), source_name(self.mesh))
+        return self._text
+
+    def clipped(self, prism):
+        """The G-code of the part of the whole model in ``prism``
+        (:func:`ambots.seam_clip.prisms`): the whole model's toolpaths clipped."""
+        return BuiltinSlicer(self.settings).write(self.toolpaths(), source_name(self.mesh), clip=prism)
 
     def layers(self):
         """(outlines, heights, overhangs, bridges), one item per layer."""

@@ -224,7 +224,10 @@ def test_plan_reports_the_bonded_share_of_the_seam_and_no_collisions(plans, seam
     second = gcode_bonded_share([os.path.join(path, a + ".gcode") for a in ("kinova", "ur10")], x_seam, 8.0, 2.0)
     assert share["bonded_share"] == pytest.approx(second, abs=0.02)
     if seam == "straight":
-        assert share["bonded_share"] <= 0.02
+        # the parts are the whole model's toolpaths clipped at the plane: lines
+        # meet end to end there (not bonded), but the solid layers' zig-zag
+        # lanes are joined again along the plane, by beads that span it
+        assert 0.3 <= share["bonded_share"] < plans["interlock"][0]["seam_bonded_share"]["kinova/ur10"]["bonded_share"]
     else:
         assert share["bonded_share"] >= 0.9
         # each arm's layer near the seam rests on the neighbour's layer below, laid before it

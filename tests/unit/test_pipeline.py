@@ -7,8 +7,9 @@ slicer (trimesh cross-sections + shapely; the slicer uses manifold3d):
 
 - material: the program extrudes (net filament + what is still retracted at
   the end, x the filament's cross-section pi (1.75/2)^2) within +-10 % of
-  the volume that perimeters and infill predict for the part
-  (:func:`predicted_part_volume`);
+  the volume that the whole model's perimeters and infill predict inside
+  the part's prism (:func:`predicted_part_volume`; the job clips the whole
+  model's toolpaths to each part, so a seam face has no walls);
 - footprint: no extruding move leaves the part's cross-section at its layer
   by more than one bead width;
 - the parts' union is the model (volume within 0.1 %) and they do not
@@ -51,8 +52,19 @@ def jobs(cell, tmp_path_factory):
     return out
 
 
-def predicted_part_volume(mesh, s=SETTINGS):
-    """Material that perimeters + infill predict for ``mesh`` (mm3).
+def halfplane(n, off, big=1e4):
+    """The half-plane n . p >= off of the bed (a large shapely polygon)."""
+    n = np.asarray(n, dtype=float)[:2]
+    p0, t = n * off, np.array([-n[1], n[0]])
+    return shapely.Polygon([p0 - big * t, p0 + big * t, p0 + big * t + big * n, p0 - big * t + big * n])
+
+
+def predicted_part_volume(mesh, s=SETTINGS, planes=None):
+    """Material that perimeters + infill predict for ``mesh`` (mm3); with
+    ``planes`` (a part's prism: (n, offset) kept n . p >= offset) for the
+    part of the whole model ``mesh`` in that prism: the whole model's
+    perimeters and infill there (the job clips the whole model's toolpaths
+    to the part, so a seam face gets no perimeters).
 
     Per layer (trimesh's cross-section at mid-layer, a shapely polygon):
 
@@ -71,16 +83,18 @@ def predicted_part_volume(mesh, s=SETTINGS):
     h = s.layer_height_mm
     spacing = s.bead_spacing_mm(h)
     polys = sections(mesh, layer_z(s, mesh) - h / 2)
+    prism = shapely.intersection_all([halfplane(n, off) for n, off in planes]) if planes else None
+    cut = (lambda g: shapely.intersection(g, prism)) if prism is not None else (lambda g: g)
     n, volume = len(polys), 0.0
     for i, poly in enumerate(polys):
         interior = poly.buffer(-s.perimeters * spacing, join_style="mitre")
-        shell = poly.area - interior.area
+        shell = cut(poly).area - cut(interior).area
         if i - s.bottom_solid_layers < 0 or i + s.top_solid_layers >= n:
             sparse = 0.0
         else:
             window = polys[i - s.bottom_solid_layers:i + s.top_solid_layers + 1]
-            sparse = shapely.intersection(interior, shapely.intersection_all(window)).area
-        volume += h * (shell + sparse * s.infill_density + (interior.area - sparse))
+            sparse = cut(shapely.intersection(interior, shapely.intersection_all(window))).area
+        volume += h * (shell + sparse * s.infill_density + (cut(interior).area - sparse))
     return volume
 
 
@@ -106,7 +120,7 @@ def test_each_part_extrudes_what_perimeters_and_infill_predict(jobs, name):
         extruded = (tp.summary["extruded_filament_mm"] + tp.summary["retracted_at_end_mm"]) \
             * np.pi * (1.75 / 2) ** 2
         assert extruded == pytest.approx(tp.filament_volume_mm3(), rel=1e-9)   # same filament area
-        predicted = predicted_part_volume(mesh)
+        predicted = predicted_part_volume(jobs[name].mesh, planes=part.planes)
         assert extruded == pytest.approx(predicted, rel=0.10), \
             "%s: %.1f mm3 extruded, %.1f predicted" % (part.arm.name, extruded, predicted)
         # coordination moved the slicer's extrusion into the program, none lost nor added
