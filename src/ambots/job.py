@@ -305,7 +305,7 @@ def slice_parts(parts, slicer="builtin", settings=None, whole=None, seam="straig
     G-code is the whole model's toolpaths clipped to the part's prism
     (:mod:`ambots.seam_clip`): no walls on the seam faces, the lines a single
     arm would print there.  Otherwise (an interlocking seam, or ``clip``
-    False: see :func:`run_job`) each part is
+    False) each part is
     sliced on its own, and the built-in slicer finds the overhangs on the
     whole model and prints each part's support inside that part's prism
     (``Part.planes``), so every arm prints the support under its own part
@@ -324,12 +324,6 @@ def slice_parts(parts, slicer="builtin", settings=None, whole=None, seam="straig
         return {p.arm.name: whole.clipped(prism[p.arm.name]) for p in parts if not p.empty}
     return {p.arm.name: slice_mesh(p.to_trimesh(), settings, backend=slicer, whole=whole, keep=p.planes or None)
             for p in parts if not p.empty}
-
-
-def scheduled(sliced, parts, cell, mode="concurrent", idle=()):
-    """:func:`ambots.coordinate.scheduled` of the parts that have G-code."""
-    from ambots.coordinate import scheduled as timeline
-    return timeline(sliced, [p for p in parts if p.arm.name in sliced], cell, mode, idle)
 
 
 def coordinate(sliced, parts, cell, mode="concurrent", idle=(), **kw):
@@ -435,18 +429,7 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
     if len(arms) > 1:
         parts = split(job.mesh, cell, arms, seam, settings, reach)
         sliced = slice_parts(parts, slicer, settings, whole or job.mesh, seam)
-        # a scheduled timeline (three or more arms around a point) gets its
-        # parts sliced each alone: its greedy schedule was measured slower on
-        # clipped toolpaths (four arms, 300 mm plate: 0.421 -> 0.548 of one
-        # arm, the arms idle twice as long; 140 mm ring 0.698 -> 0.712)
-        clipped = whole is not None and not scheduled(sliced, parts, cell, mode, idle)
-        if whole is not None and not clipped:
-            sliced = slice_parts(parts, slicer, settings, whole, seam, clip=False)
         programs = coordinate(sliced, parts, cell, mode, idle=idle)
-        if clipped and any(p.chunk_bands is not None for p in programs.values()):
-            # the timeline after all (the bands could not keep an arm clear of two seams)
-            sliced = slice_parts(parts, slicer, settings, whole, seam, clip=False)
-            programs = coordinate(sliced, parts, cell, mode, idle=idle)
         plans.append(_fastest_schedule(_plan(parts, sliced, programs, [a.name for a in arms], mode, cell), cell,
                                        mode, idle))
     if len(arms) == 1:                   # one arm: its plan (an arm that cannot reach the model is an error)

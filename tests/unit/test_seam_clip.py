@@ -13,12 +13,22 @@ from ambots.config import default_cell_path, load_cell
 from ambots.coordinate import read_sliced
 from ambots.job import prepare_model, run_job, slice_parts, split
 from ambots.seam_clip import clip_paths
-from ambots.slicer import SOLID_INFILL, Path, SliceSettings, WholeModel
+from ambots.slicer import EXTERNAL_PERIMETER, PERIMETER, SOLID_INFILL, Path, SliceSettings, WholeModel
+from test_slicer import Toolpath  # tests/unit/test_slicer.py
 
 
 @pytest.fixture(scope="module")
 def cell():
     return load_cell(default_cell_path())
+
+
+def walls_along(text, n, off):
+    """Perimeter moves (``;TYPE:`` a perimeter) over 1 mm long along the
+    plane (n, off), within 0.6 mm of it."""
+    tp = Toolpath(text)
+    wall = np.isin(tp.feature, [EXTERNAL_PERIMETER, PERIMETER]) & tp.extruding
+    d0, d1 = tp.start @ np.asarray(n) - off, tp.end @ np.asarray(n) - off
+    return int(np.sum(wall & (np.abs(d0) < 0.6) & (np.abs(d1) < 0.6) & (tp.length > 1.0)))
 
 
 def extrusions(text):
@@ -62,20 +72,14 @@ def test_the_parts_print_the_whole_models_lines_once(job):
 
 def test_no_walls_on_the_seam_faces(job):
     """Sliced each on its own, both parts have perimeters along the seam
-    (segments over 1 mm long along it, within 0.6 mm of it: the outer one
-    on every layer); clipped,
-    none: only the zig-zag links, shorter than two bead widths."""
+    (perimeter moves over 1 mm long along it, within 0.6 mm of it: the
+    outer one on every layer); clipped, none."""
     parts, _, clipped, alone = job
-
-    def along_seam(text, n, off):
-        s, t, _ = extrusions(text)
-        d0, d1 = s @ n - off, t @ n - off
-        return int(np.sum((np.abs(d0) < 0.6) & (np.abs(d1) < 0.6) & (np.linalg.norm(t - s, axis=1) > 1.0)))
 
     for p in parts:
         for n, off in p.planes:
-            assert along_seam(alone[p.arm.name], np.asarray(n), off) >= 10       # one a layer at least
-            assert along_seam(clipped[p.arm.name], np.asarray(n), off) == 0
+            assert walls_along(alone[p.arm.name], n, off) >= 10       # one a layer at least
+            assert walls_along(clipped[p.arm.name], n, off) == 0
 
 
 def test_a_loop_cut_by_a_plane_gives_each_side_its_arc():
@@ -115,16 +119,30 @@ def test_infill_cut_by_a_plane_is_joined_along_it():
     assert len(clip_paths([wide], [(n, 0.0, 1)], link_max=0.9)) == 5
 
 
-def test_the_job_clips_two_arms_and_not_a_four_arm_timeline(tmp_path):
-    """The job's plan for two arms takes the clipped toolpaths (the demo
-    cell, no seam walls); a scheduled timeline (four arms around the
-    centre) has its parts sliced each alone."""
+def test_the_job_clips_the_parts_of_two_and_of_four_arms(tmp_path):
+    """The job's plans take the clipped toolpaths (the whole model's name in
+    each part's G-code, no walls on the seam faces) for two arms and for a
+    scheduled timeline of four arms around the centre."""
     from ambots import data_path
     path = tmp_path / "plate.stl"
     trimesh.creation.box((200.0, 200.0, 1.0)).export(str(path))
     four = load_cell(data_path("config", "cells", "four_arms.yaml"))
-    job = run_job(str(path), four, list(four.arms))
-    assert all(p.chunk_bands is not None for p in job.programs.values())
-    assert not any(t.startswith("; model: plate.stl") or "\n; model: plate.stl\n" in t for t in job.sliced.values())
-    two = run_job(str(path), load_cell(default_cell_path()), None)
-    assert len(two.chosen.arms) == 2 and all("\n; model: plate.stl\n" in t for t in two.sliced.values())
+    for cell, arms in ((four, list(four.arms)), (load_cell(default_cell_path()), None)):
+        job = run_job(str(path), cell, arms)
+        assert len(job.sliced) == len(cell.arms) and all("\n; model: plate.stl\n" in t for t in job.sliced.values())
+        scheduled = all(p.chunk_bands is not None for p in job.programs.values())
+        assert scheduled == (cell is four)
+        for p in job.parts:
+            assert all(walls_along(job.sliced[p.arm.name], n, off) == 0 for n, off in p.planes)
+
+
+def test_a_point_on_a_plane_within_the_g_codes_rounding_is_on_it():
+    """The scheduled timeline measures a point less than 0.001 mm across a
+    plane (a clipped line's end, rounded to the G-code's 0.001 mm) as on the
+    plane; a point farther across stays across."""
+    from types import SimpleNamespace
+
+    from ambots.coordinate.timeline import Seams
+    seams = SimpleNamespace(N={"a": np.array([[1.0, 0.0, 0.0]])}, O={"a": np.array([10.0])})
+    d = Seams.dist(seams, "a", [[9.9996, 0, 0], [9.99, 0, 0], [10.5, 0, 0], [10.0, 0, 0]])
+    assert d[:, 0].tolist() == [0.0, pytest.approx(-0.01), pytest.approx(0.5), 0.0]

@@ -71,7 +71,7 @@ from ambots.coordinate.zones import adjacent_arms, seam_planes, seam_zone_for, s
 
 __all__ = ["ArmProgram", "build_programs", "CHUNK_BANDS", "CHUNK_BAND_CHOICES", "park_positions_mm",
            "home_positions_mm", "seam_zone_for",
-           "seam_zones_for", "seam_planes", "adjacent_arms", "read_sliced", "Sliced", "scheduled"]
+           "seam_zones_for", "seam_planes", "adjacent_arms", "read_sliced", "Sliced"]
 
 
 def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=None, idle=(), slab_mm=None,
@@ -121,20 +121,6 @@ def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=No
     home = home_positions_mm(cell, arms)
     return _concurrent(arms, read, park, home, n_layers, planes, zones, JointMoves(cell, arms),
                        CHUNK_BANDS if chunk_bands is None else chunk_bands)
-
-
-def scheduled(sliced, parts, cell, mode="concurrent", idle=()):
-    """True if :func:`build_programs` would make a scheduled timeline of
-    these parts (concurrent, several arms, adjacent arms without two
-    colours: three or more around a point); ``sliced`` as for it.  The job
-    slices such parts each on its own (:func:`ambots.job.slice_parts`)."""
-    arms = [p.arm for p in parts]
-    if mode != "concurrent" or len(arms) < 3:
-        return False
-    read = {a.name: _read(sliced[a.name], "%s.gcode" % a.name) for a in arms}
-    planes = seam_planes(parts)
-    adjacent = adjacent_arms(arms, read, planes, seam_zones_for(cell, arms, parts))
-    return two_colours([a.name for a in arms], adjacent) is None
 
 
 def _read(gcode, path):
