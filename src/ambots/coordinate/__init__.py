@@ -134,8 +134,8 @@ CHUNK_BANDS = 4
 #: plan by the one timing law (:func:`ambots.job.run_job`): fewer bands cut
 #: the layers into fewer, longer pieces (each starts and stops at rest),
 #: more let the schedule pack the arms closer in time; which wins depends
-#: on the part (the 300 mm plate with four arms 0.439 with 4, 0.421 with 3;
-#: a 140 mm ring 0.869 with 4, 0.698 with 2)
+#: on the part (session 14: the 300 mm plate with four arms 0.439 with 4,
+#: 0.421 with 3; a 140 mm ring 0.869 with 4, 0.698 with 2)
 CHUNK_BAND_CHOICES = (2, 3, 4)
 
 
