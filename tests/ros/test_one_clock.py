@@ -44,13 +44,14 @@ def test_own_model_live_equals_checked_and_plan(tmp_path, dims, speed, seam):
     assert abs(live["makespan_s"] - offline["makespan_s"]) <= 0.01 * offline["makespan_s"], \
         (live["makespan_s"], offline["makespan_s"])
     # the seam as the offline run measures it: the share of the seam face one bead bonds (an
-    # interlock nearly all of it, a straight seam none), and every arm's lap laid after the
-    # neighbour's layer below, by the beads' times on the one clock
+    # interlock nearly all of it; a straight seam where the solid layers' zig-zag lanes, cut at
+    # the plane, are joined along it: every layer of the 0.4 mm strip is solid), and every
+    # arm's lap laid after the neighbour's layer below, by the beads' times on the one clock
     assert live["seam"] == seam
     (pair, share), = live["seam_bonded_share"].items()
     assert share["samples"] == offline["seam_bonded_share"][pair]["samples"]
     assert share["bonded_share"] == pytest.approx(offline["seam_bonded_share"][pair]["bonded_share"], abs=0.01)
-    assert share["bonded_share"] >= 0.9 if seam == "interlock" else share["bonded_share"] <= 0.02
+    assert share["bonded_share"] >= (0.9 if seam == "interlock" else 0.5)
     assert live["seam_lap_order"][pair]["early"] == offline["seam_lap_order"][pair]["early"]
     if seam == "interlock":
         assert live["seam_lap_order"][pair]["early"] == 0
