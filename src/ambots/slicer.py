@@ -336,20 +336,20 @@ class WholeModel:
 
     def __init__(self, mesh, settings, layers=None):
         self.mesh, self.settings = mesh, settings
-        self._layers = None
+        self._layers = self._paths = self._text = None
         if layers is not None:
             self._layers = tuple(layers) + overhangs(layers[0], settings)
 
     def toolpaths(self):
         """The whole model's :class:`LayerPaths` (:meth:`BuiltinSlicer.toolpaths`),
         made once."""
-        if getattr(self, "_paths", None) is None:
+        if self._paths is None:
             self._paths = BuiltinSlicer(self.settings).toolpaths(self.mesh, whole=self)
         return self._paths
 
     def text(self):
         """The whole model's G-code (:class:`ambots.sliced.SlicedText`), written once."""
-        if getattr(self, "_text", None) is None:
+        if self._text is None:
             self._text = BuiltinSlicer(self.settings).write(self.toolpaths(), source_name(self.mesh))
         return self._text
 
