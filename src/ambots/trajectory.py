@@ -19,9 +19,10 @@ the points a controller receives.  :func:`retime` stretches a block's times
 The commanded motion (:class:`Spline`, :func:`smooth`): a block's waypoints
 joined by cubic Hermite segments (the block's positions at its times; at a
 waypoint the slope of the parabola through it and its neighbours, i.e.
-along the path, or zero where the path has a corner -- where the nozzle
-would otherwise leave the planned line by more than the planner's
-tolerance -- and at both ends: a block starts and ends at rest).  The largest speed and acceleration
+along the path, or zero where the path has a corner -- where it turns by
+90 deg or more, or where the nozzle would otherwise leave the planned line
+by more than the planner's tolerance -- and at both ends: a block starts
+and ends at rest).  The largest speed and acceleration
 of every segment are computed exactly (the acceleration of a cubic is linear,
 its speed quadratic) and segments are stretched until they are within the
 limits.  If a motion's speed and acceleration never exceed ``vmax``/``amax``,
@@ -391,6 +392,22 @@ def _stretch(T, D, moving, stop, vmax, amax, max_iter, pace=None):
     return T
 
 
+def _junction_speed(D, ell, mv, amax):
+    """Path speed (K-2,) at which the cubic can pass each inner knot of a
+    path whose direction turns there: passing at speed ``w`` turns the
+    velocity by ``w |u_k+1 - u_k|`` per joint, half of it before the knot
+    (the knot's slope is the mean of its two intervals'), and a cubic whose
+    end slope differs by ``delta`` from its interval's mean speed has an
+    acceleration of ``4 delta / T`` there: with ``T = l / w`` (the shorter
+    interval) that is ``2 w^2 |du_j| / l`` <= ``amax_j``."""
+    U = np.where(mv[:, None], D / np.where(mv, ell, 1.0)[:, None], 0.0)
+    du = np.abs(U[1:] - U[:-1])
+    shorter = np.minimum(ell[:-1], ell[1:])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w2 = np.where(du > 1e-12, amax[None, :] * shorter[:, None] / (2.0 * np.where(du > 1e-12, du, 1.0)), np.inf)
+    return np.sqrt(w2.min(axis=1))
+
+
 def profile_durations(T, D, moving, stop, vmax, amax, pace=None):
     """Interval durations (K-1,) of a look-ahead velocity profile along the
     waypoints: the first guess of :func:`smooth`, as a printer firmware's
@@ -401,8 +418,9 @@ def profile_durations(T, D, moving, stop, vmax, amax, pace=None):
     speeds (``min_j vmax_j / |u_kj|``) and, where ``pace`` (K-1,) is finite,
     by the feedrate (``l_k / pace_k``), and changes at most at
     ``a_k = min_j amax_j / |u_kj|``.  The speed at each knot is the largest
-    that a forward and a backward pass allow (0 where ``stop`` (K,) is set
-    and next to an interval without motion); each interval then takes the
+    that a forward and a backward pass allow, no more than the cubic can
+    pass the turn there with (:func:`_junction_speed`; 0 where ``stop``
+    (K,) is set and next to an interval without motion); each interval then takes the
     time of its trapezoid (accelerate, cruise, decelerate).  Where the
     acceleration is constant the cubic through knots at these times is
     that parabola, so :func:`_stretch` has little left to do.  Intervals
@@ -424,6 +442,8 @@ def profile_durations(T, D, moving, stop, vmax, amax, pace=None):
         cap = np.where(fed, np.minimum(cap, ell / np.where(fed, pace, 1.0)), cap)
     w = np.zeros(K1 + 1)                          # path speed at the knots
     w[1:-1] = np.minimum(cap[:-1], cap[1:])
+    if K1 > 1:                                    # at a turn: no faster than the cubic can follow it
+        w[1:-1] = np.minimum(w[1:-1], _junction_speed(D, ell, mv, amax))
     still = np.asarray(stop, bool).copy()
     still[:-1] |= ~mv
     still[1:] |= ~mv
@@ -457,7 +477,9 @@ def smooth(t, Q, vmax, amax, E=None, tip=None, tolerance=1e-4, line=None, joint_
     nozzle keeps the feedrate between corners and ramps up and down at them
     within the limits, never overshooting it.
 
-    The arm passes at rest (slope 0) the waypoints next to a segment that
+    The arm passes at rest (slope 0) the waypoints where the joint-space
+    path turns by 90 deg or more (its two intervals' changes have a
+    dot product <= 0), and the waypoints next to a segment that
     strays from its straight line -- at a corner of the path: a segment of
     a straight G-code move (``line`` (K,), per interval, with ``tip``:
     joints (N, n) -> nozzle positions (N, 3)) whose nozzle leaves the line
@@ -487,6 +509,11 @@ def smooth(t, Q, vmax, amax, E=None, tip=None, tolerance=1e-4, line=None, joint_
     stop = np.zeros(len(tu), bool)
     stop[0] = stop[-1] = True
     stop[1:-1] = ~moving[:-1] | ~moving[1:]
+    # a turn of 90 deg or more: none of the speed coming in carries on along
+    # the way out, and passing it would only make the cubic bulge (and run
+    # slower than stopping there: the look-ahead's corner law)
+    nd = np.linalg.norm(D, axis=1)
+    stop[1:-1] |= np.einsum("ij,ij->i", D[:-1], D[1:]) <= 1e-9 * nd[:-1] * nd[1:]
     while True:
         # a first guess from a look-ahead profile, then exactly within the limits
         T = _stretch(profile_durations(T_feed, D, moving, stop, vmax, amax, pace), D, moving, stop, vmax, amax,
