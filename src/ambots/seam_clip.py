@@ -50,22 +50,28 @@ def prisms(parts):
     return out
 
 
-def clip_layer(layer, planes, link_max=0.0):
+def clip_layer(layer, planes, link_max=None):
     """A :class:`ambots.slicer.LayerPaths` clipped to the prism ``planes``
     (one part's of :func:`prisms`), or None if nothing of it is left.
-    ``link_max`` (mm): infill lines cut by a plane whose cut ends are
-    nearer than this on the plane are joined there (the zig-zag the
-    slicer makes at an outline, :func:`ambots.slicer.chain_lanes`)."""
-    from ambots.slicer import SOLID_INFILL, SPARSE_INFILL
+    ``link_max``: {infill feature: mm}; infill lines of that feature cut
+    by a plane whose cut ends are nearer than this on the plane are joined
+    there, unless the link would cross one of the island's perimeter loops
+    (the zig-zag the slicer makes at an outline,
+    :func:`ambots.slicer.chain_lanes`)."""
+    from ambots.slicer import loop_segments
+    link_max = link_max or {}
     has_support = layer.support is not None
     contact = clip_paths(layer.contact or [], planes) if has_support else []
     support = clip_paths(layer.support, planes) if has_support else []
     islands = []
     for groups in layer.islands:
         kept = []
+        walls = [seg for group in groups for seg in loop_segments(group)]
+        walls = np.concatenate(walls) if walls else None
         for group in groups:
-            infill = bool(group) and all(p.feature in (SOLID_INFILL, SPARSE_INFILL) for p in group)
-            group = clip_paths(group, planes, link_max if infill else 0.0)
+            features = {p.feature for p in group}
+            link = link_max.get(features.pop(), 0.0) if len(features) == 1 else 0.0
+            group = clip_paths(group, planes, link, walls)
             if group:
                 kept.append(group)
         if kept:
@@ -77,13 +83,14 @@ def clip_layer(layer, planes, link_max=0.0):
     return layer._replace(contact=contact, support=support, islands=islands)
 
 
-def clip_paths(paths, planes, link_max=0.0):
+def clip_paths(paths, planes, link_max=0.0, walls=None):
     """``paths`` (:class:`ambots.slicer.Path`) cut to the prism: a path
     wholly inside is kept as it is (a loop stays a loop), one wholly
     outside is dropped, one that crosses a plane becomes the open pieces
     inside, in its own direction.  Two pieces in a row whose facing ends
     were both cut by the same plane, less than ``link_max`` (mm) apart,
-    are joined by a line along the plane."""
+    are joined by a line along the plane, unless that line crosses one of
+    ``walls`` ((p, 2, 2) segments, :func:`ambots.slicer.crossing`)."""
     for n, off, side in planes:
         out = []
         for path in paths:
@@ -93,16 +100,21 @@ def clip_paths(paths, planes, link_max=0.0):
                 out.append(path)
             elif inside.any():
                 out += [path._replace(points=q, closed=False) for q in _pieces(path, s, inside)]
-        paths = _joined(out, n, off, link_max) if link_max > 0 and len(out) > 1 else out
+        paths = _joined(out, n, off, link_max, walls) if link_max > 0 and len(out) > 1 else out
     return paths
 
 
-def _joined(paths, n, off, link_max):
+def _joined(paths, n, off, link_max, walls=None):
     """Consecutive open paths joined where the first ends and the next
     starts (or ends: it is then reversed) on the plane (n, off), less than
-    ``link_max`` apart."""
+    ``link_max`` apart and not across one of ``walls``."""
+    from ambots.slicer import crossing
+
     def on(p):
         return abs(float(p @ n) - off) <= 1e-7
+
+    def clear(a, b):
+        return walls is None or not crossing(a[None], b[None], walls)[0]
 
     out = [paths[0]]
     for path in paths[1:]:
@@ -110,7 +122,7 @@ def _joined(paths, n, off, link_max):
         if not last.closed and not path.closed and on(last.points[-1]):
             end = last.points[-1]
             for q in (path.points, path.points[::-1]):
-                if on(q[0]) and math.hypot(*(q[0] - end)) <= link_max:
+                if on(q[0]) and math.hypot(*(q[0] - end)) <= link_max and clear(end, q[0]):
                     out[-1] = last._replace(points=np.concatenate([last.points, q]))
                     break
             else:

@@ -296,9 +296,14 @@ class BuiltinSlicer:
         from ambots.seam_clip import clip_layer
         s = self.settings
         writer = GcodeWriter(s, name)
+
+        def links(height):
+            sp = s.bead_spacing_mm(height)
+            return {SOLID_INFILL: infill_link_mm(SOLID_INFILL, sp, s.bead_width_mm),
+                    SPARSE_INFILL: infill_link_mm(SPARSE_INFILL, sp / max(s.infill_density, 1e-9), s.bead_width_mm)}
         for lp in layers:
             if clip is not None:
-                lp = clip_layer(lp, clip, link_max=2.0 * s.bead_width_mm)   # plan_island's
+                lp = clip_layer(lp, clip, link_max=links(lp.height))   # plan_island's
                 if lp is None:
                     continue
             z, h = lp.z, lp.height
@@ -452,7 +457,8 @@ def plan_island(island, interior, height, angle_rad, settings, bridges=()):
         return groups
     solid = clip - interior
     sparse = clip ^ interior
-    link_max = 2.0 * w  # shorter jumps between lines are extruded
+    walls = [seg for g in groups for seg in loop_segments(g)]
+    walls = np.concatenate(walls) if walls else np.zeros((0, 2, 2))
     regions = []
     for span, span_angle in bridges:
         if solid.is_empty():
@@ -467,7 +473,7 @@ def plan_island(island, interior, height, angle_rad, settings, bridges=()):
         if region.is_empty() or (feature == SPARSE_INFILL and s.infill_density <= 0):
             continue
         segments = hatch(region.to_polygons(), direction, spacing, min_length=w)
-        lines = chain_lanes(segments, link_max)
+        lines = chain_lanes(segments, infill_link_mm(feature, spacing, w), walls)
         if lines:
             groups.append([Path(feature, p, False) for p in lines])
     return groups
@@ -554,20 +560,73 @@ def hatch(polygons, angle_rad, spacing, min_length=0.0):
     return np.stack([x, y], axis=-1), k
 
 
-def chain_lanes(hatched, link_max):
+#: sparse infill lines are joined by extruded links up to this many line
+#: spacings long (PrusaSlicer's connected rectilinear infill, its
+#: ``infill_anchor``): at 45 deg to a wall the next line starts 1.4 spacings
+#: along it, and each link saves a retraction, a travel and an unretraction
+#: (the demo block: 4,330 -> 150 runs of extrusion, 9,890 -> 9,460 s by the
+#: UR10 alone)
+SPARSE_LINK_SPACINGS = 3.0
+
+
+def infill_link_mm(feature, spacing, bead_width):
+    """The longest extruded link between two infill lines (mm): solid
+    infill's lines are a bead apart, joined within 2 bead widths; sparse
+    infill's within :data:`SPARSE_LINK_SPACINGS` of their spacing."""
+    if feature == SPARSE_INFILL:
+        return max(2.0 * bead_width, SPARSE_LINK_SPACINGS * spacing)
+    return 2.0 * bead_width
+
+
+def loop_segments(paths):
+    """The straight pieces (m, 2, 2) of closed paths (perimeter loops)."""
+    out = [np.stack([p.points, np.roll(p.points, -1, axis=0)], axis=1) for p in paths if p.closed and len(p.points)]
+    return out
+
+
+def crossing(A, B, walls):
+    """Which links A[i] -> B[i] ((m, 2) each, mm) cross one of ``walls``
+    ((p, 2, 2) segments): a link that crosses no perimeter loop of its
+    island stays inside the innermost one, i.e. inside the part."""
+    m = len(A)
+    hit = np.zeros(m, dtype=bool)
+    if not m or not len(walls):
+        return hit
+    lo, hi = np.minimum(A, B), np.maximum(A, B)
+    wlo, whi = walls.min(axis=1), walls.max(axis=1)
+    C, D = walls[:, 0], walls[:, 1]
+
+    def side(P, Q, R):             # sign of the turn P -> Q -> R
+        return np.sign((Q[..., 0] - P[..., 0]) * (R[..., 1] - P[..., 1])
+                       - (Q[..., 1] - P[..., 1]) * (R[..., 0] - P[..., 0]))
+
+    for i in range(0, m, 256):     # bounded memory: 256 links x p walls at a time
+        a, b = A[i:i + 256, None], B[i:i + 256, None]
+        near = ((lo[i:i + 256, None] <= whi[None]) & (wlo[None] <= hi[i:i + 256, None])).all(axis=2)
+        if not near.any():
+            continue
+        proper = (side(a, b, C[None]) * side(a, b, D[None]) < 0) & (side(C[None], D[None], a) * side(C[None], D[None], b) < 0)
+        hit[i:i + 256] = (near & proper).any(axis=1)
+    return hit
+
+
+def chain_lanes(hatched, link_max, walls=None):
     """Order clipped lines into zig-zag lanes and join them into polylines.
 
     Consecutive lines with the same number of pieces form a run; piece j of
     every line of a run is lane j.  Lanes are printed one after the other,
     each as a zig-zag (every other line reversed); a jump shorter than
-    ``link_max`` between two lines is extruded, a longer one starts a new
-    polyline (the writer travels, retracting if it is long).
+    ``link_max`` between two lines is extruded unless it crosses one of
+    ``walls`` ((p, 2, 2) segments: the island's perimeter loops,
+    :func:`crossing`); any other starts a new polyline (the writer travels,
+    retracting if it is long).
 
     Parameters
     ----------
     hatched : ((M, 2, 2) float, (M,) int)
       Output of :func:`hatch`.
     link_max : float, mm
+    walls : (p, 2, 2) float, mm, optional
 
     Returns
     -------
@@ -587,7 +646,11 @@ def chain_lanes(hatched, link_max):
     seg[flip] = seg[flip, ::-1]
     pts = seg.reshape(-1, 2)
     gap = np.linalg.norm(seg[1:, 0] - seg[:-1, 1], axis=1)
-    breaks = np.flatnonzero(gap > link_max) + 1
+    cut = gap > link_max
+    if walls is not None and len(walls):
+        short = np.flatnonzero(~cut)
+        cut[short] = crossing(seg[:-1, 1][short], seg[1:, 0][short], walls)
+    breaks = np.flatnonzero(cut) + 1
     return np.split(pts, 2 * breaks)
 
 

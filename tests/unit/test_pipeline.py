@@ -77,7 +77,9 @@ def predicted_part_volume(mesh, s=SETTINGS, planes=None):
     - interior (the inset): at ``infill_density`` where every layer within
       ``bottom_solid_layers`` below and ``top_solid_layers`` above covers it,
       solid (density 1) elsewhere: the first and last layers and over
-      overhangs;
+      overhangs; the sparse infill's lines are joined along the region's
+      boundary (PrusaSlicer's connected infill), in every other gap
+      between them: half the boundary's length, one bead spacing wide;
 
     summed and multiplied by the layer height."""
     h = s.layer_height_mm
@@ -90,11 +92,14 @@ def predicted_part_volume(mesh, s=SETTINGS, planes=None):
         interior = poly.buffer(-s.perimeters * spacing, join_style="mitre")
         shell = cut(poly).area - cut(interior).area
         if i - s.bottom_solid_layers < 0 or i + s.top_solid_layers >= n:
-            sparse = 0.0
+            sparse = links = 0.0
         else:
             window = polys[i - s.bottom_solid_layers:i + s.top_solid_layers + 1]
-            sparse = cut(shapely.intersection(interior, shapely.intersection_all(window))).area
-        volume += h * (shell + sparse * s.infill_density + (cut(interior).area - sparse))
+            region = cut(shapely.intersection(interior, shapely.intersection_all(window)))
+            # connected infill: the links between its lines run along every other gap of
+            # the region's boundary, half of it, one bead wide
+            sparse, links = region.area, 0.5 * region.length * spacing
+        volume += h * (shell + sparse * s.infill_density + links + (cut(interior).area - sparse))
     return volume
 
 

@@ -187,8 +187,12 @@ def test_no_extrusion_leaves_the_footprint(name):
 
 # ------------------------------------------------------------------ infill
 
+#: longer than any link between two infill lines (sparse: 3 spacings, 6.1 mm)
+LINE_MM = 7.0
+
+
 def infill_angles(tp, feature, layer):
-    sel = tp.extruding & (tp.feature == feature) & (tp.layer == layer) & (tp.length > 2 * W)
+    sel = tp.extruding & (tp.feature == feature) & (tp.layer == layer) & (tp.length > LINE_MM)
     d = tp.end[sel, :2] - tp.start[sel, :2]
     return np.degrees(np.arctan2(d[:, 1], d[:, 0])) % 180.0
 
@@ -205,11 +209,57 @@ def test_infill_direction_alternates():
 
 def test_sparse_infill_spacing_follows_density():
     tp = gcode_of("cube", "builtin")
-    sel = tp.extruding & (tp.feature == "Internal infill") & (tp.layer == 50) & (tp.length > 2 * W)
+    sel = tp.extruding & (tp.feature == "Internal infill") & (tp.layer == 50) & (tp.length > LINE_MM)
     mid = (tp.start[sel, :2] + tp.end[sel, :2]) / 2
     offsets = np.unique(np.round(mid @ np.array([-1.0, 1.0]) / math.sqrt(2), 3))
     spacing = (W - 0.2 * (1 - math.pi / 4)) / SETTINGS.infill_density
     np.testing.assert_allclose(np.diff(offsets), spacing, atol=0.01)
+
+
+def comb():
+    """A bar with six teeth 4 mm wide and 2.5 mm apart (narrower than the
+    sparse infill's links), and a slot along the bar: lines on both sides of
+    a gap end within a link's length of each other."""
+    import manifold3d as m3
+    from ambots.mesh import from_manifold
+    m = m3.Manifold.cube([40.0, 10.0, 6.0])
+    for i in range(6):
+        m = m + m3.Manifold.cube([4.0, 22.0, 6.0]).translate([i * 6.5 + 0.5, 9.0, 0.0])
+    m = m - m3.Manifold.cube([30.0, 2.0, 6.0]).translate([5.0, 4.0, 0.0])
+    return place_on_bed(from_manifold(m))
+
+
+@pytest.mark.parametrize("name", ["cube", "hole", "comb"])
+def test_sparse_infill_is_joined_and_its_links_stay_inside(name):
+    """Sparse infill lines are joined by extruded links along the walls (a
+    zig-zag per lane, as PrusaSlicer connects its infill) instead of a
+    retracted travel each; every infill move, links included, lies inside
+    the model's own cross-section (trimesh + shapely), also where lines end
+    on both sides of a gap narrower than a link."""
+    mesh = comb() if name == "comb" else placed(name)
+    tp = Toolpath(slice_mesh(mesh, SETTINGS, backend="builtin"))
+    polys = sections(mesh, layer_z(SETTINGS, mesh) - 0.1)
+    sparse = tp.extruding & (tp.feature == "Internal infill")
+    lines = runs = 0
+    for i, poly in enumerate(polys):
+        sel = np.flatnonzero((tp.extruding & np.isin(tp.feature, ["Internal infill", "Solid infill"])
+                              & (tp.layer == i)))
+        if not len(sel):
+            continue
+        segs = shapely.linestrings(np.stack([tp.start[sel, :2], tp.end[sel, :2]], axis=1))
+        inside = shapely.within(segs, poly.buffer(0.01, join_style="mitre"))
+        assert inside.all(), "layer %d: infill moves leave the part: %s" % (i, segs[~inside][:3])
+        mine = np.flatnonzero(sparse & (tp.layer == i))
+        if len(mine):
+            lines += int((tp.length[mine] > LINE_MM).sum())
+            # a run starts where the move before is not a sparse extrusion ending here
+            cont = np.zeros(len(mine), bool)
+            cont[1:] = (np.diff(mine) == 1) & np.all(tp.start[mine[1:]] == tp.end[mine[:-1]], axis=1)
+            runs += int((~cont).sum())
+    if name != "comb":       # its teeth are too narrow for lines longer than a link
+        # one run per line before (cube 1,128 runs for 940 lines, hole 748 for 612); 94 and 102 now
+        assert lines > 100
+        assert runs < 0.25 * lines, "%d runs of sparse infill for %d lines" % (runs, lines)
 
 
 @pytest.mark.parametrize("name,solid_layers", [
