@@ -24,14 +24,18 @@ class _Arm:
 
 
 def _naive_estimate(arms, stats, colour, n_layers, k, t):
-    """The estimate's rule written out layer by layer, piece by piece."""
+    """The estimate's rule written out layer by layer, piece by piece, arm
+    by arm: the arms sweeping away print their phases one after the other;
+    an arm sweeping towards the seam starts phase p after its phase p-1 and
+    after every arm sweeping away has ended its phase p-1 (that end counted
+    1 + SYNC_MARGIN); the layer ends with the last arm.  An arm with no
+    work on a layer still goes through its phases (it retreats into its
+    bands) and waits at the barriers."""
     total = 0.0
     for layer in range(n_layers):
-        phase_t = [0.0] * k
-        for a in arms:
-            if (a.name, layer) not in stats:
-                continue
-            d, dur, follows = stats[a.name, layer]
+        phases = {}
+        for a in arms:              # an arm without work on the layer still sweeps it (and waits)
+            d, dur, follows = stats.get((a.name, layer), ((), (), ()))
             per_band = [0.0] * k
             prev = None
             for x, y, f in zip(d, dur, follows):
@@ -39,10 +43,27 @@ def _naive_estimate(arms, stats, colour, n_layers, k, t):
                 fresh = (not f) or (prev is not None and b != prev)
                 per_band[b] += y + (bands.PIECE_S if fresh else 0.0)
                 prev = b
+            phase_t = [0.0] * k
             for b in range(k):
-                p = _phase_of(b, colour[a.name], layer, k)
-                phase_t[p] = max(phase_t[p], per_band[b])
-        total += sum(phase_t) + 0.5 * k
+                phase_t[_phase_of(b, colour[a.name], layer, k)] = per_band[b]
+            phases[a.name] = (phase_t, (colour[a.name] + layer) % 2 == 0)
+        ends = [0.0] * k            # the latest end of each phase among the arms sweeping away
+        for ph, away in phases.values():
+            if away:
+                done = 0.0
+                for p in range(k):
+                    done += ph[p]
+                    ends[p] = max(ends[p], done)
+        layer_t = ends[-1]
+        for ph, away in phases.values():
+            if not away:
+                e = 0.0
+                for p in range(k):
+                    if p:
+                        e = max(e, ends[p - 1] * (1 + bands.SYNC_MARGIN))
+                    e += ph[p]
+                layer_t = max(layer_t, e)
+        total += layer_t + 0.5 * k
     return total
 
 

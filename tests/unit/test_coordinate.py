@@ -204,6 +204,53 @@ def test_concurrent_nozzles_across_a_seam_stay_a_zone_apart(cell, job, seed):
     assert slack["kinova", "ur10"] >= -1e-6, "nozzles %.1f mm nearer than the zone" % -slack["kinova", "ur10"]
 
 
+def zigzag_layers(sign, layers=4, h=0.2, s=2.5, span=20.0):
+    """Hand-made slicer output of a part on one side of the seam x = 0
+    (``sign`` +1 or -1): per layer one zig-zag lane of infill, lines at 45
+    deg spanning ``span`` mm across the strip, ``s`` mm apart, joined along
+    its edges (what the built-in slicer makes of sparse infill)."""
+    out = ["G21", "G90", "M83"]
+    for k in range(layers):
+        z = h * (k + 1)
+        pts = []
+        for i, a in enumerate(np.arange(0.0, 80.0 - span + 1e-9, s)):
+            bottom, top = (a, -20.0), (a + span, 20.0)
+            pts += [bottom, top] if i % 2 == 0 else [top, bottom]
+        out += [";LAYER_CHANGE", ";Z:%.1f" % z, "G0 X%.3f Y%.3f Z%.1f F9000" % (sign * pts[0][0], pts[0][1], z)]
+        for p, q in zip(pts, pts[1:]):
+            out.append("G1 X%.3f Y%.3f E%.5f F1800" % (sign * q[0], q[1], 0.03 * np.hypot(q[0] - p[0], q[1] - p[1])))
+    return "\n".join(out) + "\n"
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_zigzag_lanes_are_cut_between_lines_and_keep_the_zone(cell, seed):
+    """A lane whose every line crosses the band edges is divided between its
+    lines, not at every crossing: far fewer runs of extrusion than
+    crossings, the same filament, and -- executed with random durations --
+    two nozzles are never nearer than the zone across the seam."""
+    model = m3.Manifold.cube([160, 40, 0.8]).translate([-80, -20, 0])
+    parts = partition(model, cell)
+    sliced = {"kinova": zigzag_layers(-1), "ur10": zigzag_layers(1)}
+    zone = 30.0
+    programs = build_programs(sliced, parts, cell, mode="concurrent", zone_mm=zone)
+    planes = seam_planes(parts)
+    for name, prog in programs.items():
+        assert totals(prog.text) == pytest.approx(totals(sliced[name]), rel=1e-9)
+        t = [float(v) for v in prog.lines[2].split(" from ")[1].split(" mm")[0].split()]
+        segs = [x for x in parse_gcode_text(sliced[name]) if type(x) is Segment and x.extrude]
+        d = lambda p: abs(p[0])                                 # distance to the seam x = 0
+        crossings = sum(1 for x in segs for edge in t[1:] if min(d(x.start), d(x.end)) < edge < max(d(x.start), d(x.end)))
+        out = [x for x in parse_gcode_text(prog.text) if type(x) is Segment and x.start != x.end]
+        runs = sum(1 for i, x in enumerate(out) if x.extrude and (i == 0 or not out[i - 1].extrude))
+        # cut at every crossing, a lane made crossings + 1 runs a layer (53 for 44 with 30 mm lines)
+        assert crossings >= 30 and runs <= 0.4 * crossings, (runs, crossings)
+    spans = execute(programs, random.Random(seed), home_positions_mm(cell, [p.arm for p in parts]))
+    counts, slack = closest_across(spans, planes, {k: zone for k in planes},
+                                   park_positions_mm(cell, [p.arm for p in parts]))
+    assert counts["kinova", "ur10"] > 50
+    assert slack["kinova", "ur10"] >= -1e-6, "nozzles %.1f mm nearer than the zone" % -slack["kinova", "ur10"]
+
+
 @pytest.mark.parametrize("seed", range(3))
 def test_concurrent_programs_never_deadlock_and_barriers_hold(cell, job, seed):
     parts, sliced = job

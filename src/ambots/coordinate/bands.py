@@ -27,8 +27,10 @@ _last_bands = None
 #: balanced band edges are used when their estimate is below this share of
 #: the equal widths' estimate (ties go to equal widths; 0.95 before, which
 #: kept the demo on 3 equal bands although 5 balanced ones are 2.5 % faster
-#: by the timing law)
-_BALANCED_GAIN = 0.99
+#: by the timing law; 0.99 until the estimate counted the waits at the
+#: barriers, :data:`SYNC_MARGIN`, which it chose equal widths for: 2
+#: bands of 60 mm on the demo, 5,157 s, against 5,032 s with a 52 mm near band)
+_BALANCED_GAIN = 1.0
 
 
 def band_stats(arms, segs_by, planes, n_layers):
@@ -89,10 +91,28 @@ def _uniform_bounds(arms, far, zone_mm, k):
     return out
 
 
+#: the arms that sweep towards the seam are counted as arriving this much
+#: (a share of the time) earlier than their estimate at each barrier, where
+#: they wait for the arms sweeping away: the arms differ in speed (the
+#: Kinova takes 1.7 % longer than the UR10 on the demo) and the estimate
+#: errs by a few per cent per phase, so bands that tie in the estimate make
+#: the arm moving towards the seam wait (on the demo 143-236 s per arm with
+#: two equal bands; 0 with a narrower near band)
+SYNC_MARGIN = 0.05
+#: the near band's share of an arm's work, relative to 1/k, of the balanced
+#: edges tried (:func:`_balanced_bounds`)
+NEAR_SHARES = (1.0, 0.85, 0.7)
+
+
 def _estimate(arms, stats, colour, n_layers, k, t):
     """Estimated makespan (s) of k bands with edges ``t`` {arm: (k,)}: per
-    layer, the sum over phases of the slowest arm's band, every piece of
-    path a band cuts out counted with PIECE_S, and half a second a barrier."""
+    layer, from both colours starting it together, the arms sweeping away
+    from the seam print their bands one after the other; an arm sweeping
+    towards it starts each phase after its last one and after the arms
+    sweeping away have ended their phases before it (the barrier; their
+    times counted ``1 + SYNC_MARGIN`` there); the layer ends when the last
+    arm is done.  Every piece of path a band cuts out is counted with
+    PIECE_S, and half a second a barrier."""
     return _estimate_groups(_Groups(arms, _layer_groups(arms, stats, n_layers), colour), k, t)
 
 
@@ -141,7 +161,7 @@ class _Groups:
 def _estimate_groups(groups, k, t):
     """:func:`_estimate` on :class:`_Groups` (the same sums in the same order
     as one layer group at a time)."""
-    phase_t = np.zeros((groups.n, k))
+    phases = {}
     for name, (d, dur, follows, group, first, away) in groups.arms.items():
         band = np.clip(np.searchsorted(t[name], d, side="right") - 1, 0, k - 1)
         # every piece of path a band cuts out starts and ends at rest, with a travel
@@ -152,27 +172,39 @@ def _estimate_groups(groups, k, t):
         cell = group * k + band
         per_band = (np.bincount(cell, weights=dur, minlength=groups.n * k)
                     + PIECE_S * np.bincount(cell, weights=fresh, minlength=groups.n * k)).reshape(groups.n, k)
-        np.maximum(phase_t, np.where(away[:, None], per_band, per_band[:, ::-1]), out=phase_t)
+        phases[name] = (np.where(away[:, None], per_band, per_band[:, ::-1]), away)
+    # the arms sweeping away: each phase's end, the latest of them (with the margin: the barriers)
+    ends = np.zeros((groups.n, k))
+    barrier = np.zeros((groups.n, k))
+    for ph, away in phases.values():
+        done = np.where(away[:, None], np.cumsum(ph, axis=1), 0.0)
+        np.maximum(ends, done, out=ends)
+        np.maximum(barrier, done * (1.0 + SYNC_MARGIN), out=barrier)
+    layer_t = ends[:, -1].copy()
+    for ph, away in phases.values():               # the arms sweeping towards the seam
+        e = np.zeros(groups.n)
+        for p in range(k):
+            e = (np.maximum(e, barrier[:, p - 1]) if p else e) + ph[:, p]
+        np.maximum(layer_t, np.where(away, 0.0, e), out=layer_t)
     est = 0.0
-    for count, row in zip(groups.counts, phase_t):
-        est += count * (row.sum() + k * 0.5)          # a barrier costs about half a second
+    for count, row in zip(groups.counts, layer_t):
+        est += count * (row + k * 0.5)                # a barrier costs about half a second
     return est
 
 
 def choose_bands(arms, stats, n_layers, zone_mm, colour, adjacent, pair_zone):
     """(k, {arm: band edges (k,)}): k in 2..12 and equal widths or balanced
     shares (:func:`_balanced_bounds`), whichever has the least estimated
-    makespan; balanced bands only when clearly better (below
-    ``_BALANCED_GAIN`` of the equal widths' estimate): at a band edge of its
-    own work an arm waits more often than the estimate counts."""
+    makespan (ties: equal widths)."""
     global _last_bands
     names = [a.name for a in arms]
     far, work = _reach(arms, stats, n_layers)
     groups = _Groups(arms, _layer_groups(arms, stats, n_layers), colour)
     best = {}
     for k in range(2, 13):
-        for kind, t in (("uniform", _uniform_bounds(arms, far, zone_mm, k)),
-                        ("balanced", _balanced_bounds(names, work, adjacent, pair_zone, k))):
+        tries = [("uniform", _uniform_bounds(arms, far, zone_mm, k))]
+        tries += [("balanced", _balanced_bounds(names, work, adjacent, pair_zone, k, near)) for near in NEAR_SHARES]
+        for kind, t in tries:
             if t is None:
                 continue
             est = _estimate_groups(groups, k, t)
@@ -189,10 +221,10 @@ def _phase_of(band, colour, layer, k):
     return band if away else k - 1 - band
 
 
-def _balanced_bounds(names, work, adjacent, zones, k):
+def _balanced_bounds(names, work, adjacent, zones, k, near=1.0):
     """Band boundaries {arm: (k,) mm} that split each arm's work (``work``:
-    {arm: (distance to the nearest seam (S,), duration (S,))}) into k equal
-    shares, then raised until every adjacent pair a, b keeps
+    {arm: (distance to the nearest seam (S,), duration (S,))}) into k
+    shares, the near band's ``near`` / k and the others equal, then raised until every adjacent pair a, b keeps
     t_a[i] + t_b[k-1-i] >= its zone for every i (t[0] = 0 stays; raising a
     boundary only moves work to lower bands, and only widens the gaps)."""
     t = {}
@@ -203,7 +235,8 @@ def _balanced_bounds(names, work, adjacent, zones, k):
             continue
         order = np.argsort(d)
         cum = np.cumsum(dur[order]) / dur.sum()
-        q = [0.0] + [float(d[order][min(int(np.searchsorted(cum, i / k)), len(d) - 1)]) for i in range(1, k)]
+        share = [near / k + (i - 1) * (1.0 - near / k) / (k - 1) for i in range(1, k)]
+        q = [0.0] + [float(d[order][min(int(np.searchsorted(cum, c)), len(d) - 1)]) for c in share]
         t[n] = np.maximum.accumulate(np.maximum(np.array(q), 0.0))
     return t if _raise(t, names, adjacent, zones, k) else None
 
