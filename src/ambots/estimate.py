@@ -104,8 +104,12 @@ def _features(segments, first=None):
     return kind, f, L, corners
 
 
-def _nonneg_fit(X, y):
-    """Least squares with coefficients >= 0 (few columns: every subset tried)."""
+def _nonneg_fit(X, y, w=None):
+    """Least squares with coefficients >= 0 (few columns: every subset
+    tried), rows weighted by ``w`` (default 1)."""
+    if w is not None:
+        r = np.sqrt(np.asarray(w, float))
+        X, y = X * r[:, None], y * r
     best, cost = np.zeros(X.shape[1]), float(np.sum(y * y))
     for r in range(1, X.shape[1] + 1):
         for cols in itertools.combinations(range(X.shape[1]), r):
@@ -167,16 +171,18 @@ def line_durations(text, arm, cell, path="<program>", sample_moves=SAMPLE_MOVES,
         kind, f, L, cor = _features(segs)
         lines = np.array([s.line for s in segs])
         first = 1 if (i == runs[0] and len(segs) > 1) else 0     # the lead from home is in the first line
-        rows.append(np.column_stack([kind, f, L, cor, per_line[lines]])[first:])
+        # a run is picked with a chance in proportion to its moves (:func:`_spread`): each of
+        # its moves weighs 1 / its moves in the fit, so the fit is the whole program's
+        rows.append(np.column_stack([kind, f, L, cor, per_line[lines], np.full(len(segs), 1.0 / len(segs))])[first:])
         d[lines] = per_line[lines]
         planned.add(i)
         out.planned_moves += len(segs)
-    R = np.concatenate(rows) if rows else np.zeros((0, 5))
+    R = np.concatenate(rows) if rows else np.zeros((0, 6))
     ratio = R[:, 4].sum() / max(R[:, 1].sum(), 1e-9) if len(R) else 1.0
     for k, name in enumerate(MOVE_KINDS):
         sel = R[:, 0] == k
         if sel.sum() >= 8:
-            out.model[name] = tuple(_nonneg_fit(_design(R[sel, 1], R[sel, 2], R[sel, 3]), R[sel, 4]))
+            out.model[name] = tuple(_nonneg_fit(_design(R[sel, 1], R[sel, 2], R[sel, 3]), R[sel, 4], R[sel, 5]))
         else:                            # too few to fit: the sample's overall ratio to the feed time
             out.model[name] = (ratio, 0.0, 0.0)
     coef = np.array([out.model[name] for name in MOVE_KINDS])
