@@ -38,6 +38,8 @@ class Candidate:
     programs: dict = field(default=None, repr=False)   #: {arm name: ArmProgram}, when built
     #: {arm name: G-code events of its program}, the one parse of each program
     events: dict = field(default=None, repr=False)
+    #: {arm name: s it moves (the makespan less its waits)}, when timed
+    busy_s: dict = field(default=None, repr=False)
 
     def as_dict(self):
         return {"arms": list(self.arms), "how": self.how,
@@ -283,10 +285,11 @@ def shipped_cells():
     return out
 
 
-def split(mesh, cell, arms, seam="straight", settings=None, reach=None):
+def split(mesh, cell, arms, seam="straight", settings=None, reach=None, pace=None):
     """Step 2: one part per arm, balanced, each inside its arm's reach
     (``reach``: a dict shared by the splits of one mesh, see
-    :func:`ambots.partition.partition`'s ``reach_cache``)."""
+    :func:`ambots.partition.partition`'s ``reach_cache``; ``pace``: its
+    arms' relative speeds, see there)."""
     from ambots.mesh import to_manifold
     from ambots.partition import PrintEstimate, partition
     from ambots.slicer import SliceSettings, layer_heights
@@ -295,7 +298,7 @@ def split(mesh, cell, arms, seam="straight", settings=None, reach=None):
     model = to_manifold(mesh)
     # an interlocking seam's slabs are the slicer's layers
     layers = layer_heights(float(model.bounding_box()[5]), s)
-    return partition(model, cell, arms, seam=seam, est=est, reach_cache=reach, layers=layers)
+    return partition(model, cell, arms, seam=seam, est=est, reach_cache=reach, layers=layers, pace=pace)
 
 
 def slice_parts(parts, slicer="builtin", settings=None, whole=None, seam="straight", clip=True):
@@ -353,16 +356,33 @@ def _timed(programs, cell):
         events = {n: p.parse() for n, p in programs.items()}
         est = estimate_programs(programs, cell, events=events)
     except AmbotsError as exc:
-        return None, str(exc), None
+        return None, str(exc), None, None
     if est["errors"]:
-        return None, "; ".join(est["errors"].values()), events
-    return est["makespan_s"], None, events
+        return None, "; ".join(est["errors"].values()), events, None
+    return est["makespan_s"], None, events, {n: a["busy_s"] for n, a in est["arms"].items()}
 
 
 def _plan(parts, sliced, programs, arms, how, cell):
     """A plan's (parts, sliced, programs, Candidate), timed."""
-    t, why, events = _timed(programs, cell)
-    return parts, sliced, programs, Candidate(arms, how, t, why, programs, events)
+    t, why, events, busy = _timed(programs, cell)
+    return parts, sliced, programs, Candidate(arms, how, t, why, programs, events, busy)
+
+
+#: a plan of several arms that is faster than each arm alone is split again
+#: (once) when its arms' busy times differ by more than this share, each
+#: arm's pace (:func:`ambots.partition.partition`) its busy time over their
+#: mean: the split's estimate sees the volume, not the arm's speed or what
+#: its part's program costs (on the demo the Kinova's half took 1.1 % longer
+#: than the UR10's; the Kinova alone takes 1.7 % longer)
+REBALANCE_SHARE = 0.004
+
+
+def _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle):
+    """The plan of ``arms`` together: (parts, sliced, programs, Candidate)."""
+    parts = split(job.mesh, cell, arms, seam, settings, reach, pace)
+    sliced = slice_parts(parts, slicer, settings, whole or job.mesh, seam)
+    programs = coordinate(sliced, parts, cell, mode, idle=idle)
+    return _fastest_schedule(_plan(parts, sliced, programs, [a.name for a in arms], mode, cell), cell, mode, idle)
 
 
 def _fastest_schedule(plan, cell, mode, idle):
@@ -413,6 +433,8 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
     considers every arm alone: each plan is timed by the one timing law
     (:func:`ambots.estimate.estimate_programs`) and the fastest one is
     chosen, fewer arms unless more are faster by more than ``TIE_SHARE``.
+    A plan of several arms that beats each arm alone is split once more with
+    each arm's share sized by its busy time in the first (:data:`REBALANCE_SHARE`).
     Without it the given arms print together (``job.forced``)."""
     if choose is None:                   # sequential mode is the original's way: the arms asked for, in turn
         choose = arms is None and mode == "concurrent"
@@ -426,23 +448,32 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
     if slicer == "builtin":              # the whole model sliced once for the parts and the arms alone
         from ambots.slicer import SliceSettings, WholeModel
         whole = WholeModel(job.mesh, settings or SliceSettings())
+    alone = []
+    if len(arms) > 1 and choose:         # each arm alone, on the same G-code of the whole model (read once)
+        from ambots.slicer import slice_mesh
+        text, read = whole.text() if whole is not None else slice_mesh(job.mesh, settings, backend=slicer), {}
+        for arm in arms:
+            alone.append(_alone(job.mesh, cell, arm, text, [a for a in cell.arms if a.name != arm.name], settings,
+                                read, reach))
     if len(arms) > 1:
-        parts = split(job.mesh, cell, arms, seam, settings, reach)
-        sliced = slice_parts(parts, slicer, settings, whole or job.mesh, seam)
-        programs = coordinate(sliced, parts, cell, mode, idle=idle)
-        plans.append(_fastest_schedule(_plan(parts, sliced, programs, [a.name for a in arms], mode, cell), cell,
-                                       mode, idle))
+        plan = _cooperative(job, cell, arms, seam, settings, reach, None, slicer, whole, mode, idle)
+        timed = [p[3].makespan_s for p in alone if p[3].makespan_s]
+        busy = plan[3].busy_s
+        if (timed and busy and len(busy) == len(arms) and plan[3].makespan_s < min(timed)
+                and max(busy.values()) > (1.0 + REBALANCE_SHARE) * min(busy.values())):
+            # cooperating pays: split again, each arm's share sized by how long its part took
+            mean = sum(busy.values()) / len(busy)
+            again = _cooperative(job, cell, arms, seam, settings, reach, {n: b / mean for n, b in busy.items()},
+                                 slicer, whole, mode, idle)
+            if again[3].makespan_s is not None and again[3].makespan_s < plan[3].makespan_s:
+                plan = again
+        plans.append(plan)
+        plans += alone
     if len(arms) == 1:                   # one arm: its plan (an arm that cannot reach the model is an error)
         parts = split(job.mesh, cell, arms, seam, settings)
         sliced = slice_parts(parts, slicer, settings, job.mesh)
         programs = coordinate(sliced, parts, cell, mode, idle=idle)
         plans.append(_plan(parts, sliced, programs, [arms[0].name], "alone", cell))
-    elif choose:                         # each arm alone, on the same G-code of the whole model (read once)
-        from ambots.slicer import slice_mesh
-        text, read = whole.text() if whole is not None else slice_mesh(job.mesh, settings, backend=slicer), {}
-        for arm in arms:
-            plans.append(_alone(job.mesh, cell, arm, text, [a for a in cell.arms if a.name != arm.name], settings,
-                                read, reach))
     best = _best([p[3] for p in plans]) if choose else 0
     if best is None:                     # nothing could be timed: the arms asked for, as before
         best = 0

@@ -134,13 +134,18 @@ def _cut(model, planes):
     return part
 
 
-def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tolerance=1.02,
-              max_iter=80, check_reach=True, reach_cache=None, layers=None, interlock_mm=None):
+def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tolerance=None,
+              max_iter=80, check_reach=True, reach_cache=None, layers=None, interlock_mm=None, pace=None):
     """Split ``model`` (manifold3d.Manifold, mm, bed frame) among ``arms`` (default:
     every arm of ``cell``) and return one :class:`Part` per arm, in order.
 
     The weights are adjusted until the longest estimated print time is within
-    ``tolerance`` of the shortest (or ``max_iter`` rounds).  With
+    ``tolerance`` of the shortest (or ``max_iter`` rounds; default 1.005 for
+    two arms, whose one seam is found by the secant method, else 1.02); ``pace``:
+    {arm name: how long it takes relative to the others for the same
+    work} (default 1: all alike), e.g. the arms' times for the whole model
+    (the job's plans of each arm alone) over their mean, so a slower arm
+    gets a smaller part.  With
     ``check_reach``, every vertex of every part must be reachable by its arm
     with the nozzle down (:func:`_check_reach`: what is solved, and why that
     is safe); otherwise :class:`MeshError` says which arm misses by how much.
@@ -162,6 +167,7 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
         parts = [Part(arms[0], model, [], estimate_print_time(model, est), [])]
     else:
         sites = seam_sites_mm(cell, arms)
+        rates = [float((pace or {}).get(a.name, 1.0)) for a in arms]
         lo, hi = np.array(model.bounding_box()[:2]), np.array(model.bounding_box()[3:5])
         centre = (lo + hi) / 2
         size2 = float(np.sum((hi - lo) ** 2))
@@ -170,19 +176,31 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
         best = None
         step = 0.5
         prev_sign = None
+        two = len(arms) == 2
+        if tolerance is None:
+            tolerance = 1.005 if two else 1.02
+        prev = None                  # two arms: (w[0], rel[0]) of the round before, for the secant
         for _ in range(max_iter):
             pieces = [_cut(model, _planes(sites, w, i)) for i in range(len(arms))]
-            times = np.array([estimate_print_time(piece, est) for piece in pieces])
+            times = np.array([estimate_print_time(piece, est) * rate for piece, rate in zip(pieces, rates)])
             ratio = times.max() / max(times.min(), 1e-9)
             if best is None or ratio < best[0]:
                 best = (ratio, w.copy(), pieces, times)
             if ratio <= tolerance:
                 break
             rel = (times - times.mean()) / times.mean()
+            if two and prev is not None and abs(rel[0] - prev[1]) > 1e-12 and w[0] != prev[0]:
+                slope = (rel[0] - prev[1]) / (w[0] - prev[0])
+                if slope > 0:        # a larger weight, a larger part: the secant's root
+                    prev = (w[0], rel[0])
+                    w = w.copy()
+                    w[0] -= rel[0] / slope
+                    continue
             sign = np.sign(rel)
             if prev_sign is not None and np.any(sign * prev_sign < 0):
                 step *= 0.7          # overshoot: take smaller steps
             prev_sign = sign
+            prev = (w[0], rel[0])
             w = w - step * rel * size2
         w = best[1]
         # the best round's pieces are the parts of a straight seam, and their times
