@@ -194,7 +194,11 @@ def _cut_layer(segs, planes, t, lo=None):
             flag |= (low < edge) & (edge < high)
     if not flag.any():
         return list(segs), mids, np.full(len(segs), -1)
-    whole = _zigzag_bands(segs, P0, P1, mids, flag, planes, t, lo) if lo is not None else np.full(len(segs), -1)
+    # every segment an edge comes near, cut once: its pieces and their midpoints
+    cuts = {i: _split_at_bands(segs[i], planes, t) for i in np.flatnonzero(flag).tolist()}
+    cut_mids = {i: np.array([np.add(p.start, p.end) / 2.0 for p in ps]) for i, ps in cuts.items()}
+    whole = (_zigzag_bands(segs, P0, P1, mids, flag, planes, t, lo, cuts, cut_mids) if lo is not None
+             else np.full(len(segs), -1))
     out, src, extra, fixed = [], [], [], []
     for i, (s, f) in enumerate(zip(segs, flag.tolist())):
         if not f or whole[i] >= 0:
@@ -202,22 +206,23 @@ def _cut_layer(segs, planes, t, lo=None):
             src.append(i)
             fixed.append(whole[i])
             continue
-        for piece in _split_at_bands(s, planes, t):
-            out.append(piece)
-            src.append(-1)
-            fixed.append(-1)
-            extra.append(np.add(piece.start, piece.end) / 2.0)
+        out += cuts[i]
+        src += [-1] * len(cuts[i])
+        fixed += [-1] * len(cuts[i])
+        extra.append(cut_mids[i])
     src = np.array(src)
     cut = src < 0
     out_mids = np.empty((len(out), 3))
     out_mids[~cut] = mids[src[~cut]]
-    out_mids[cut] = np.array(extra, dtype=float).reshape(-1, 3)
+    out_mids[cut] = np.concatenate(extra).reshape(-1, 3) if extra else np.zeros((0, 3))
     return out, out_mids, np.array(fixed, dtype=int)
 
 
-def _zigzag_bands(segs, P0, P1, mids, flag, planes, t, lo):
+def _zigzag_bands(segs, P0, P1, mids, flag, planes, t, lo, cuts, cut_mids):
     """The band (S,) of each segment of a zig-zag run that is printed whole
-    (-1: cut at the edges as usual).  A run of extrusions (each starting
+    (-1: cut at the edges as usual; ``cuts``/``cut_mids``: {flagged
+    segment: its pieces cut at the edges / their midpoints}).  A run of
+    extrusions (each starting
     where the one before ends) that crosses the edges
     :data:`ZIGZAG_CROSSINGS` times or more, and whose bands rise (or fall)
     along it, is divided at its vertices: its first segments, as long as
@@ -247,20 +252,15 @@ def _zigzag_bands(segs, P0, P1, mids, flag, planes, t, lo):
     length = np.linalg.norm(P1 - P0, axis=1)
     band = _band_of(mids, planes, t)
     lo = np.asarray(lo, dtype=float)
+    # each segment's length per band when cut at every crossing (S, k)
+    per_band = np.zeros((len(segs), k))
+    per_band[np.arange(len(segs)), band] = length
+    for i, ps in cuts.items():
+        per_band[i] = np.bincount(_band_of(cut_mids[i], planes, t),
+                                  [float(np.linalg.norm(np.subtract(p.end, p.start))) for p in ps], minlength=k)
     for i0, i1 in runs:
         idx = np.arange(i0, i1)
-        pieces = {}                               # the pieces of the segments cut at every crossing, by band
-        work = np.zeros(k)                        # the run's work per band, cut at every crossing
-        for i in idx:
-            if flag[i]:
-                got = np.zeros(k)
-                for piece in _split_at_bands(segs[i], planes, t):
-                    m = np.add(piece.start, piece.end)[None] / 2.0
-                    got[_band_of(m, planes, t)[0]] += float(np.linalg.norm(np.subtract(piece.end, piece.start)))
-                pieces[i] = got
-                work += got
-            else:
-                work[band[i]] += length[i]
+        work = per_band[idx].sum(axis=0)          # the run's work per band, cut at every crossing
         half = len(idx) // 2
         rise = band[idx[half:]].mean() - band[idx[:half]].mean()
         if rise == 0:
@@ -280,7 +280,7 @@ def _zigzag_bands(segs, P0, P1, mids, flag, planes, t, lo):
                 whole[i] = b
                 held[b] += length[i]
             else:
-                held += pieces[i] if i in pieces else np.eye(k)[band[i]] * length[i]
+                held += per_band[i]
         if np.abs(held - work).max() > ZIGZAG_SHIFT * length[idx].sum():
             continue            # its lines too long for the bands' slack: cut at every crossing
         for i, vb in whole.items():

@@ -24,13 +24,11 @@ __all__ = ["choose_bands", "band_stats", "PIECE_S"]
 PIECE_S = 0.17
 #: the estimated makespans (s) and k of the last banded programs, by kind of band edges, for inspection
 _last_bands = None
-#: balanced band edges are used when their estimate is below this share of
-#: the equal widths' estimate (ties go to equal widths; 0.95 before, which
-#: kept the demo on 3 equal bands although 5 balanced ones are 2.5 % faster
-#: by the timing law; 0.99 until the estimate counted the waits at the
-#: barriers, :data:`SYNC_MARGIN`, which it chose equal widths for: 2
-#: bands of 60 mm on the demo, 5,157 s, against 5,032 s with a 52 mm near band)
-_BALANCED_GAIN = 1.0
+# (balanced edges once had to beat equal widths by 5 %, then 1 %: that kept
+# the demo on 3 equal bands although 5 balanced ones were 2.5 % faster, and
+# on 2 bands of 60 mm, 5,157 s, against 5,032 s with a 52 mm near band.  The
+# estimate counts the waits at the barriers now, :data:`SYNC_MARGIN`, and
+# the least estimate wins.)
 
 
 def band_stats(arms, segs_by, planes, n_layers):
@@ -210,7 +208,7 @@ def choose_bands(arms, stats, n_layers, zone_mm, colour, adjacent, pair_zone):
             est = _estimate_groups(groups, k, t)
             if kind not in best or est < best[kind][0] - 1e-9:
                 best[kind] = (est, k, t)
-    kind = "balanced" if "balanced" in best and best["balanced"][0] < _BALANCED_GAIN * best["uniform"][0] else "uniform"
+    kind = "balanced" if "balanced" in best and best["balanced"][0] < best["uniform"][0] else "uniform"
     _last_bands = {kd: (est, k) for kd, (est, k, _) in best.items()}
     return best[kind][1], best[kind][2]
 
