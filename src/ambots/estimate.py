@@ -350,9 +350,11 @@ def estimate_programs(programs, cell, sample_moves=SAMPLE_MOVES, events=None):
     for programs with a move out of reach in the sample.  ``events``: {name:
     the program's G-code events} when the caller has parsed them already
     (:meth:`ambots.coordinate.ArmProgram.parse`)."""
+    from ambots.parallel import fork_map
     events = events or {}
-    times = {n: line_durations(p.text, p.arm, cell, n + ".gcode", sample_moves, events=events.get(n))
-             for n, p in programs.items()}
+    names = list(programs)              # the arms' programs timed side by side (:mod:`ambots.parallel`)
+    times = dict(zip(names, fork_map(lambda n: line_durations(programs[n].text, programs[n].arm, cell, n + ".gcode",
+                                                              sample_moves, events=events.get(n)), names)))
     out = makespan(times, [p.arm for p in programs.values()],
                    {n: p.start_first for n, p in programs.items()})
     out["errors"] = {n: t.error for n, t in times.items() if t.error}

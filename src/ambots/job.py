@@ -9,7 +9,7 @@ import glob
 import json
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Dict, List
 
 from ambots import data_path
@@ -323,8 +323,11 @@ def slice_parts(parts, slicer="builtin", settings=None, whole=None, seam="straig
     if not isinstance(whole, WholeModel) or whole.settings != s:
         whole = WholeModel(whole.mesh if isinstance(whole, WholeModel) else whole, s)   # sliced once for the parts
     prism = prisms(parts) if clip and seam_kind(seam) == "straight" else None
-    if prism is not None:
-        return {p.arm.name: whole.clipped(prism[p.arm.name]) for p in parts if not p.empty}
+    if prism is not None:                # each arm's part clipped side by side (:mod:`ambots.parallel`)
+        from ambots.parallel import fork_map
+        whole.toolpaths()                # once, before the fork
+        names = [p.arm.name for p in parts if not p.empty]
+        return dict(zip(names, fork_map(lambda n: whole.clipped(prism[n]), names)))
     return {p.arm.name: slice_mesh(p.to_trimesh(), settings, backend=slicer, whole=whole, keep=p.planes or None)
             for p in parts if not p.empty}
 
@@ -395,16 +398,26 @@ def _fastest_schedule(plan, cell, mode, idle):
     bands = {p.chunk_bands for p in programs.values()}
     if None in bands or candidate.makespan_s is None:
         return plan
+    from ambots.parallel import fork_map
     read = {n: read_sliced(t, "%s.gcode" % n) if isinstance(t, str) else t for n, t in sliced.items()}
+
+    def build(b):                        # (programs, Candidate): no parts, which cannot be pickled
+        return _plan(parts, sliced, coordinate(read, parts, cell, mode, idle=idle, chunk_bands=b),
+                     candidate.arms, candidate.how, cell)[2:]
+
     best = plan
-    for b in CHUNK_BAND_CHOICES:
-        if b in bands:
-            continue
-        other = _plan(parts, sliced, coordinate(read, parts, cell, mode, idle=idle, chunk_bands=b),
-                      candidate.arms, candidate.how, cell)
-        if other[3].makespan_s is not None and other[3].makespan_s < best[3].makespan_s:
-            best = other
+    for programs, other in fork_map(build, [b for b in CHUNK_BAND_CHOICES if b not in bands]):
+        if other.makespan_s is not None and other.makespan_s < best[3].makespan_s:
+            best = parts, sliced, _own_arms(programs, cell), other
     return best
+
+
+def _own_arms(programs, cell):
+    """``programs`` ({name: ArmProgram}, or None) with the cell's own arm
+    objects again (a worker process sends back copies)."""
+    for name, p in (programs or {}).items():
+        p.arm = cell.arm(name)
+    return programs
 
 
 def _alone(mesh, cell, arm, text, idle, settings, read, reach=None):
@@ -424,6 +437,37 @@ def _alone(mesh, cell, arm, text, idle, settings, read, reach=None):
     return _plan(parts, {arm.name: text}, programs, [arm.name], "alone", cell)
 
 
+def _alone_plans(mesh, cell, arms, text, settings, reach):
+    """Each of ``arms`` alone (:func:`_alone`) on the whole model's G-code,
+    read once: [(programs, Candidate)] in the order of ``arms``, to be sent
+    back from a worker process (:mod:`ambots.parallel`).  Without parts (a
+    part's manifold cannot be pickled; the chosen plan's are made again by
+    :func:`split`), and with programs and events only for the fastest (the
+    only one of them that can be chosen, see :func:`_best`).  ``text``:
+    that G-code, or the :class:`ambots.slicer.WholeModel` to write it."""
+    text = text.text() if hasattr(text, "text") else text
+    read = {}
+    plans = [_alone(mesh, cell, arm, text, [a for a in cell.arms if a.name != arm.name], settings, read, reach)
+             for arm in arms]
+    best = _best([p[3] for p in plans])
+    return [(programs, c) if i == best else (None, replace(c, programs=None, events=None))
+            for i, (_, _, programs, c) in enumerate(plans)]
+
+
+def _received(alone, text, cell):
+    """:func:`_alone_plans`' result as plans (parts, sliced, programs,
+    Candidate); the sliced text (``text``, as there) only for the one with
+    programs."""
+    out = []
+    for programs, c in alone:
+        sliced = None
+        if programs is not None:
+            sliced = {c.arms[0]: text.text() if hasattr(text, "text") else text}
+            _own_arms(programs, cell)
+        out.append((None, sliced, programs, c))
+    return out
+
+
 def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", seam="straight",
             scale=1.0, settings=None, choose=None):
     """All four steps; returns the :class:`Job`.
@@ -435,7 +479,9 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
     chosen, fewer arms unless more are faster by more than ``TIE_SHARE``.
     A plan of several arms that beats each arm alone is split once more with
     each arm's share sized by its busy time in the first (:data:`REBALANCE_SHARE`).
-    Without it the given arms print together (``job.forced``)."""
+    Without it the given arms print together (``job.forced``).  The arms
+    alone are planned in a worker process beside the plan together
+    (:mod:`ambots.parallel`; ``AMBOTS_JOBS=1``: one after the other, here)."""
     if choose is None:                   # sequential mode is the original's way: the arms asked for, in turn
         choose = arms is None and mode == "concurrent"
     arms = list(cell.arms if arms is None else arms)
@@ -448,15 +494,25 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
     if slicer == "builtin":              # the whole model sliced once for the parts and the arms alone
         from ambots.slicer import SliceSettings, WholeModel
         whole = WholeModel(job.mesh, settings or SliceSettings())
-    alone = []
-    if len(arms) > 1 and choose:         # each arm alone, on the same G-code of the whole model (read once)
+    background = None
+    if len(arms) > 1 and choose:         # each arm alone, on the same G-code of the whole model, beside the plan together
+        from ambots.kinematics import shared_arm_kinematics
+        from ambots.parallel import Forked
         from ambots.slicer import slice_mesh
-        text, read = whole.text() if whole is not None else slice_mesh(job.mesh, settings, backend=slicer), {}
-        for arm in arms:
-            alone.append(_alone(job.mesh, cell, arm, text, [a for a in cell.arms if a.name != arm.name], settings,
-                                read, reach))
+        for arm in arms:                 # built once, before the fork (xacro: 0.15 s an arm), for both processes
+            shared_arm_kinematics(arm)
+        if whole is not None:
+            whole.toolpaths()            # made once, before the fork: the plans of both processes clip it
+        text = whole if whole is not None else slice_mesh(job.mesh, settings, backend=slicer)
+        background = Forked(lambda: _alone_plans(job.mesh, cell, arms, text, settings, reach))
     if len(arms) > 1:
-        plan = _cooperative(job, cell, arms, seam, settings, reach, None, slicer, whole, mode, idle)
+        try:
+            plan = _cooperative(job, cell, arms, seam, settings, reach, None, slicer, whole, mode, idle)
+        except BaseException:
+            if background is not None:
+                background.cancel()
+            raise
+        alone = _received(background.result(), text, cell) if background else []
         timed = [p[3].makespan_s for p in alone if p[3].makespan_s]
         busy = plan[3].busy_s
         if (timed and busy and len(busy) == len(arms) and plan[3].makespan_s < min(timed)
@@ -477,6 +533,9 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
     best = _best([p[3] for p in plans]) if choose else 0
     if best is None:                     # nothing could be timed: the arms asked for, as before
         best = 0
+    if plans[best][0] is None and plans[best][2] is not None:     # an arm alone, planned in a worker
+        plans[best] = (split(job.mesh, cell, [cell.arm(plans[best][3].arms[0])], settings=settings, reach=reach),
+                       ) + tuple(plans[best][1:])
     job.parts, job.sliced, job.programs = plans[best][0], plans[best][1], plans[best][2]
     if plans[best][3].arms != [a.name for a in arms]:
         job.arms = [cell.arm(n) for n in plans[best][3].arms]

@@ -273,6 +273,8 @@ class BuiltinSlicer:
             else:
                 ctx = whole if isinstance(whole, WholeModel) and whole.settings == s else WholeModel(
                     whole.mesh if isinstance(whole, WholeModel) else whole, s)
+                if ctx.mesh is mesh:
+                    ctx.seed(outlines, heights)      # the whole model itself: sliced once
             whole_outlines, whole_heights, over, spans = ctx.layers()
             supports = (support_layers(whole_outlines, whole_heights, s, keep, over) + supports)[:len(outlines)]
             bridges = (spans + bridges)[:len(outlines)]
@@ -362,6 +364,12 @@ class WholeModel:
         """The G-code of the part of the whole model in ``prism``
         (:func:`ambots.seam_clip.prisms`): the whole model's toolpaths clipped."""
         return BuiltinSlicer(self.settings).write(self.toolpaths(), source_name(self.mesh), clip=prism)
+
+    def seed(self, outlines, heights):
+        """Take the outlines of :attr:`mesh` already sliced on this model's
+        layers (:func:`layer_heights`, :func:`slice_layers`), unless sliced."""
+        if self._layers is None:
+            self._layers = (outlines, heights) + overhangs(outlines, self.settings)
 
     def layers(self):
         """(outlines, heights, overhangs, bridges), one item per layer."""

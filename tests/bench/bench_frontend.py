@@ -8,11 +8,13 @@ bench_slicer's), 60 mm across, so that the mesh's size matters.  Timed:
 job calls it: temporary STL, program start, G-code read back); the whole
 job as the menu runs it (``run_job``: model, split, slicing, coordination,
 and the planner's timing of the plans it compares) with the built-in slicer,
-for the default cell; and the same with the arms given (``--arms``: one
-plan, still timed).
+for the default cell, with its worker processes (:mod:`ambots.parallel`);
+the same with the arms given (``--arms``: one plan, still timed); and the
+job with the choice again in one process (``AMBOTS_JOBS=1``).
 
 Wall time is the measure (the goal's); the CPU seconds are printed beside
-it (prusa-slicer's: its process's, over its threads), since on a shared,
+it (prusa-slicer's: its process's, over its threads; the job's: its
+process's and its workers'), since on a shared,
 loaded machine the wall times of one run can differ by 2x from the next
 while the CPU seconds stay within a few per cent."""
 import os
@@ -24,6 +26,7 @@ import trimesh
 from ambots.config import default_cell_path, load_cell
 from ambots.job import run_job
 from ambots.mesh import place_on_bed
+from ambots.parallel import JOBS_ENV, workers
 from ambots.slicer import SliceSettings, slice_mesh
 
 
@@ -32,7 +35,15 @@ def _children_cpu():
     return t.children_user + t.children_system
 
 
+def _cpu():
+    """This process's CPU seconds and its ended children's (the job's worker
+    processes, :mod:`ambots.parallel`)."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
 def main():
+    jobs = os.environ.get(JOBS_ENV)
     cell = load_cell(default_cell_path())
     mesh = place_on_bed(trimesh.creation.icosphere(subdivisions=7, radius=30.0))
     with tempfile.TemporaryDirectory() as tmp:
@@ -41,16 +52,28 @@ def main():
         t, c = time.perf_counter(), _children_cpu()
         slice_mesh(mesh, SliceSettings(), backend="prusa")
         prusa, prusa_cpu = time.perf_counter() - t, _children_cpu() - c
-        t, c = time.perf_counter(), time.process_time()
+        t, c = time.perf_counter(), _cpu()
         job = run_job(path, cell)
-        chosen, chosen_cpu = time.perf_counter() - t, time.process_time() - c
-        t, c = time.perf_counter(), time.process_time()
+        chosen, chosen_cpu = time.perf_counter() - t, _cpu() - c
+        t, c = time.perf_counter(), _cpu()
         run_job(path, cell, list(cell.arms))
-        forced, forced_cpu = time.perf_counter() - t, time.process_time() - c
+        forced, forced_cpu = time.perf_counter() - t, _cpu() - c
+        os.environ[JOBS_ENV] = "1"              # the same job in one process, for the workers' share
+        try:
+            t, c = time.perf_counter(), _cpu()
+            run_job(path, cell)
+            single, single_cpu = time.perf_counter() - t, _cpu() - c
+        finally:
+            if jobs is None:
+                del os.environ[JOBS_ENV]
+            else:
+                os.environ[JOBS_ENV] = jobs
     print("front end, %d triangles: prusa-slicer alone %.1f s; the job (builtin slicer) with the planner's "
           "choice %.1f s (%s chosen) = %.1fx; both arms given %.1f s = %.1fx (goal <= 1.0x)"
           % (len(mesh.faces), prusa, chosen, "+".join(job.chosen.arms), chosen / prusa, forced, forced / prusa),
           flush=True)
+    print("   the job with the choice in one process (%s=1): %.1f s = %.1fx, CPU %.1f s; with %d worker processes: "
+          "%.1f s" % (JOBS_ENV, single, single / prusa, single_cpu, workers(), chosen), flush=True)
     print("   CPU: prusa-slicer %.1f s; the job %.1f s = %.1fx; both arms given %.1f s = %.1fx; load average %.1f"
           % (prusa_cpu, chosen_cpu, chosen_cpu / prusa_cpu, forced_cpu, forced_cpu / prusa_cpu, os.getloadavg()[0]),
           flush=True)
