@@ -240,6 +240,50 @@ def _park_time(planner, prev, msg, home):
     return block.duration if block.error is None else 0.0
 
 
+class _OnTheClock:
+    """One arm's program on the shared clock (:func:`makespan`): the
+    directive it is at, the line it has reached, and when each stretch of
+    its lines began (a stretch starts at a barrier it waited at, or where
+    it was resumed)."""
+
+    def __init__(self, pt, started):
+        self.pt = pt
+        self.marks = sorted(pt.directives)
+        self.cs = np.concatenate([[0.0], np.cumsum(pt.d[1:])])    # cs[k]: lines 1..k
+        self.i = 0                                  # the next directive, index into marks
+        self.line = 0                               # the lines done so far
+        self.clock = self.start = 0.0 if started else None
+        self.stretches = [(0, 0.0)]                 # (first line, time it began)
+        self.done = None
+
+    def begin(self, t):
+        """Started (A1 from another arm) at ``t``."""
+        self.clock = self.start = t
+        self.stretches = [(0, t)]
+
+    def at(self, line):
+        """When ``line`` ends in the stretch the arm is in now."""
+        first, t0 = self.stretches[-1]
+        return t0 + self.cs[line] - self.cs[first]
+
+    def time_of_line(self, line):
+        """When the arm finished ``line``, or None if not known yet."""
+        if self.done is not None and line >= self.line:
+            return self.done
+        if self.clock is None or line > self.line:
+            return None
+        for first, t0 in reversed(self.stretches):
+            if first <= line:
+                return t0 + self.cs[line] - self.cs[first]
+        return None
+
+    def time_of_layer(self, layer):
+        hit = np.nonzero(self.pt.layer_of_line[1:] >= layer)[0]
+        if not len(hit):
+            return self.done
+        return self.time_of_line(int(hit[0]) + 1)
+
+
 def makespan(times, arms, start_first=None):
     """The arms' programs together on one clock (step 2 of the module
     docstring).  ``times``: {arm name: :class:`ProgramTimes`}; ``arms``: the
@@ -248,99 +292,63 @@ def makespan(times, arms, start_first=None):
     "finish_s", "busy_s", "idle_s"}}}.  Raises :class:`EstimateError` if
     the arms would wait for each other for ever."""
     by_id = {a.id: a.name for a in arms}
-    names = [a.name for a in arms if a.name in times]
-    resumes = {n: [] for n in names}                  # when other arms sent an arm A6 (or A1 once started)
     start_first = start_first or {}
-    state = {}
-    for n in names:
-        pt = times[n]
-        marks = sorted(pt.directives)
-        cs = np.concatenate([[0.0], np.cumsum(pt.d[1:])])        # cs[k]: lines 1..k
-        state[n] = {"pt": pt, "marks": marks, "cs": cs, "i": 0, "line": 0, "clock": None,
-                    "stretches": [(0, 0.0)], "done": None}
-        if start_first.get(n, True):
-            state[n]["clock"] = 0.0
-    for n in names:
-        state[n]["start"] = state[n]["clock"]
-
-    def time_of_line(n, line):
-        """When arm n finished ``line``, or None if not known yet."""
-        s = state[n]
-        if s["done"] is not None and line >= s["line"]:
-            return s["done"]
-        if s["clock"] is None or line > s["line"]:
-            return None
-        # the stretch that holds the line
-        for first, t0 in reversed(s["stretches"]):
-            if first <= line:
-                return t0 + s["cs"][line] - s["cs"][first]
-        return None
-
-    def time_of_layer(n, layer):
-        s = state[n]
-        lol = s["pt"].layer_of_line
-        hit = np.nonzero(lol[1:] >= layer)[0]
-        if not len(hit):
-            return s["done"]
-        first = int(hit[0]) + 1
-        return time_of_line(n, first)
-
+    state = {a.name: _OnTheClock(times[a.name], start_first.get(a.name, True)) for a in arms if a.name in times}
+    resumes = {n: [] for n in state}                 # when other arms sent an arm A6 (or A1 once started)
     progress = True
     while progress:
         progress = False
-        for n in names:
-            s = state[n]
-            if s["clock"] is None or s["done"] is not None:
-                continue
-            pt, marks = s["pt"], s["marks"]
-            while s["i"] < len(marks):
-                m = marks[s["i"]]
-                clock_at_m = s["stretches"][-1][1] + s["cs"][m - 1] - s["cs"][s["stretches"][-1][0]]
-                msg = pt.directives[m]
-                if isinstance(msg, WaitFor) and by_id.get(msg.robot) == n and by_id.get(msg.other) in state:
-                    other = by_id[msg.other]
-                    t = (time_of_line(other, msg.line) if msg.line is not None
-                         else time_of_layer(other, msg.layer))
-                    if t is None:
-                        s["line"] = m - 1
-                        break                       # blocked: let the others run
-                    s["stretches"].append((m, max(clock_at_m, t)))      # line m (the barrier) ends then
-                elif isinstance(msg, Pause) and by_id.get(msg.robot) == n:
-                    # paused until another arm's A6 (or A1) sent after it paused; earlier ones were ignored
-                    t = next((r for r in resumes[n] if r >= clock_at_m), None)
-                    if t is None:
-                        s["line"] = m - 1
-                        break                       # paused: let the others run
-                    resumes[n] = [r for r in resumes[n] if r > t]
-                    s["stretches"].append((m, t))
-                elif isinstance(msg, (Start, Resume)) and by_id.get(msg.robot) in state and by_id[msg.robot] != n:
-                    o = state[by_id[msg.robot]]
-                    sent = clock_at_m + s["cs"][m] - s["cs"][m - 1]
-                    if o["clock"] is None and isinstance(msg, Start):
-                        o["clock"] = sent
-                        o["start"] = o["clock"]
-                        o["stretches"] = [(0, o["clock"])]
-                    elif o["clock"] is not None:
-                        resumes[by_id[msg.robot]].append(sent)
-                    progress = True
-                s["i"] += 1
-                s["line"] = m
-                progress = True
-            else:
-                last = len(pt.d) - 1
-                s["line"] = last
-                s["done"] = s["stretches"][-1][1] + s["cs"][last] - s["cs"][s["stretches"][-1][0]]
-                progress = True
-    stuck = [n for n in names if state[n]["done"] is None]
+        for n, s in state.items():
+            if s.clock is not None and s.done is None:
+                progress |= _run_until_blocked(n, s, state, by_id, resumes)
+    stuck = [n for n, s in state.items() if s.done is None]
     if stuck:
         raise EstimateError("the programs of %s wait for each other (or are never started)" % ", ".join(stuck))
-    out = {"makespan_s": max((state[n]["done"] for n in names), default=0.0), "arms": {}}
-    for n in names:
-        s = state[n]
-        busy = float(s["pt"].d.sum())
-        out["arms"][n] = {"start_s": float(s["start"]), "finish_s": float(s["done"]), "busy_s": busy,
-                          "idle_s": float(s["done"] - s["start"] - busy)}
+    out = {"makespan_s": max((s.done for s in state.values()), default=0.0), "arms": {}}
+    for n, s in state.items():
+        busy = float(s.pt.d.sum())
+        out["arms"][n] = {"start_s": float(s.start), "finish_s": float(s.done), "busy_s": busy,
+                          "idle_s": float(s.done - s.start - busy)}
     return out
+
+
+def _run_until_blocked(n, s, state, by_id, resumes):
+    """Move arm ``n`` (``s``, :class:`_OnTheClock`) through its directives
+    until it waits for what has not happened yet (another arm's line or
+    layer, a resume) or ends; True if it got anywhere."""
+    moved = False
+    while s.i < len(s.marks):
+        m = s.marks[s.i]
+        at_m = s.at(m - 1)
+        msg = s.pt.directives[m]
+        if isinstance(msg, WaitFor) and by_id.get(msg.robot) == n and by_id.get(msg.other) in state:
+            other = state[by_id[msg.other]]
+            t = other.time_of_line(msg.line) if msg.line is not None else other.time_of_layer(msg.layer)
+            if t is None:
+                s.line = m - 1
+                return moved                        # blocked: let the others run
+            s.stretches.append((m, max(at_m, t)))   # line m (the barrier) ends then
+        elif isinstance(msg, Pause) and by_id.get(msg.robot) == n:
+            # paused until another arm's A6 (or A1) sent after it paused; earlier ones were ignored
+            t = next((r for r in resumes[n] if r >= at_m), None)
+            if t is None:
+                s.line = m - 1
+                return moved                        # paused: let the others run
+            resumes[n] = [r for r in resumes[n] if r > t]
+            s.stretches.append((m, t))
+        elif isinstance(msg, (Start, Resume)) and by_id.get(msg.robot) in state and by_id[msg.robot] != n:
+            o = state[by_id[msg.robot]]
+            sent = at_m + s.cs[m] - s.cs[m - 1]
+            if o.clock is None and isinstance(msg, Start):
+                o.begin(sent)
+            elif o.clock is not None:
+                resumes[by_id[msg.robot]].append(sent)
+        s.i += 1
+        s.line = m
+        moved = True
+    s.line = len(s.pt.d) - 1
+    s.done = s.at(s.line)
+    return True
 
 
 def estimate_programs(programs, cell, sample_moves=SAMPLE_MOVES, events=None):
