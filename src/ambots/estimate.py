@@ -148,43 +148,22 @@ def line_durations(text, arm, cell, path="<program>", sample_moves=SAMPLE_MOVES,
             if isinstance(it, Pause):
                 d[it.line] += it.seconds
         return out
-    sizes = np.array([len(items[i].segments) for i in runs])
-    out.moves = int(sizes.sum())
-    # the sample: the first run, then runs evenly spread until the budget is used
-    chosen = _spread(runs, sizes, sample_moves)
+    out.moves = int(sum(len(items[i].segments) for i in runs))
     planned = set()
-    rows = []            # (kind, feed time, length, corners, planned time) of the sampled moves, per run
-    q = home
-    for i in chosen:
-        segs = items[i].segments
-        if i != runs[0]:                # start where the run starts (not counted), as the firmware would be
-            lead = planner.joint_move_to(planner.bed_mm_to_base(np.array([segs[0].start]))[0], q)
-            if lead.error is None:
-                q = lead.Q[-1]
-        block = planner.plan_moves(segs, q)
+    rows = []            # (kind, feed time, length, corners, planned time, weight) of the sampled moves
+    for j, segs, block in _plan_sample(planner, home, [items[i].segments for i in runs], sample_moves):
+        i = runs[j]
         if block.error is not None:
             out.error = "%s: line %d: %s" % (path, block.error.line, block.error.message)
             break
-        q = block.Q[-1]
         per_line = np.zeros(n_lines + 1)
         np.add.at(per_line, block.line[1:], np.diff(block.t))
-        kind, f, L, cor = _features(segs)
         lines = np.array([s.line for s in segs])
-        first = 1 if (i == runs[0] and len(segs) > 1) else 0     # the lead from home is in the first line
-        # a run is picked with a chance in proportion to its moves (:func:`_spread`): each of
-        # its moves weighs 1 / its moves in the fit, so the fit is the whole program's
-        rows.append(np.column_stack([kind, f, L, cor, per_line[lines], np.full(len(segs), 1.0 / len(segs))])[first:])
+        rows.append(_sample_rows(segs, per_line[lines], from_home=(j == 0)))
         d[lines] = per_line[lines]
         planned.add(i)
         out.planned_moves += len(segs)
-    R = np.concatenate(rows) if rows else np.zeros((0, 6))
-    ratio = R[:, 4].sum() / max(R[:, 1].sum(), 1e-9) if len(R) else 1.0
-    for k, name in enumerate(MOVE_KINDS):
-        sel = R[:, 0] == k
-        if sel.sum() >= 8:
-            out.model[name] = tuple(_nonneg_fit(_design(R[sel, 1], R[sel, 2], R[sel, 3]), R[sel, 4], R[sel, 5]))
-        else:                            # too few to fit: the sample's overall ratio to the feed time
-            out.model[name] = (ratio, 0.0, 0.0)
+    out.model = _fit(rows)
     coef = np.array([out.model[name] for name in MOVE_KINDS])
     rest = [items[i].segments for i in runs if i not in planned]
     if rest:                             # the other runs, all at once
@@ -203,6 +182,53 @@ def line_durations(text, arm, cell, path="<program>", sample_moves=SAMPLE_MOVES,
         elif isinstance(it.message, MoveTo) and it.message.robot == arm.id:
             d[it.line] += _park_time(planner, last_end, it.message, home)
     return out
+
+
+def _plan_sample(planner, home, runs, sample_moves):
+    """The sample of step 1: the first run from ``home``, then runs spread
+    evenly over the moves (:func:`_spread`), each from where it starts (as
+    the firmware would be); yields (index into ``runs``, its segments, the
+    planned block), and stops after a block with an error."""
+    sizes = np.array([len(r) for r in runs])
+    q = home
+    for j in _spread(list(range(len(runs))), sizes, sample_moves):
+        segs = runs[j]
+        if j != 0:                      # start where the run starts (not counted)
+            lead = planner.joint_move_to(planner.bed_mm_to_base(np.array([segs[0].start]))[0], q)
+            if lead.error is None:
+                q = lead.Q[-1]
+        block = planner.plan_moves(segs, q)
+        yield j, segs, block
+        if block.error is not None:
+            return
+        q = block.Q[-1]
+
+
+def _sample_rows(segs, planned, from_home):
+    """Rows (kind, feed time, length, corners, planned time, weight) of one
+    planned run (``planned``: its moves' planned seconds).  The first run's
+    first move holds the lead from home: left out.  A run is picked with a
+    chance in proportion to its moves (:func:`_spread`): each of its moves
+    weighs 1 / its moves in the fit, so the fit is the whole program's."""
+    kind, f, L, cor = _features(segs)
+    first = 1 if (from_home and len(segs) > 1) else 0
+    return np.column_stack([kind, f, L, cor, planned, np.full(len(segs), 1.0 / len(segs))])[first:]
+
+
+def _fit(rows):
+    """The per-move model {kind: (a, b, c)} fitted on the sample's rows
+    (:func:`_sample_rows`); a kind with fewer than 8 moves in the sample
+    takes the sample's overall ratio to the feed time."""
+    R = np.concatenate(rows) if rows else np.zeros((0, 6))
+    ratio = R[:, 4].sum() / max(R[:, 1].sum(), 1e-9) if len(R) else 1.0
+    model = {}
+    for k, name in enumerate(MOVE_KINDS):
+        sel = R[:, 0] == k
+        if sel.sum() >= 8:
+            model[name] = tuple(_nonneg_fit(_design(R[sel, 1], R[sel, 2], R[sel, 3]), R[sel, 4], R[sel, 5]))
+        else:
+            model[name] = (ratio, 0.0, 0.0)
+    return model
 
 
 def program_time(text, arm, cell, path="<program>", sample_moves=SAMPLE_MOVES):
