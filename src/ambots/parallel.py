@@ -71,6 +71,7 @@ def _child(fn, fd):
     """In the child: run ``fn``, write (ok, value) to ``fd``, exit."""
     global _IN_WORKER
     _IN_WORKER = True
+    del _LIVE[:]                              # the parent's children are not this one's
     code = 0
     try:
         try:
@@ -180,7 +181,9 @@ def fork_map(fn, items):
     less those of this process's :class:`Forked` children still working).
     The first error, in item order, is raised once every child has ended."""
     items = list(items)
-    n = workers() - _working()
+    n = workers()
+    if n > 1:
+        n -= _working()
     if n < 2 or len(items) < 2:
         return [fn(x) for x in items]
     results, running = [None] * len(items), {}     # running: item index -> Forked

@@ -111,6 +111,22 @@ def test_a_working_child_counts_against_the_workers(jobs):
     os.close(w)
 
 
+def test_a_worker_does_not_count_its_parents_children(jobs):
+    """A worker forked while another child works sees no children of its
+    own (it would wait for a process that is not its child)."""
+    jobs(3)
+    r, w = os.pipe()
+    first = Forked(lambda: os.read(r, 1))
+    try:
+        second = Forked(lambda: (len(parallel._LIVE), fork_map(lambda x: x + 1, range(3))))
+        assert second.result() == (0, [1, 2, 3])
+    finally:
+        os.write(w, b"x")
+    assert first.result() == b"x"
+    os.close(r)
+    os.close(w)
+
+
 def test_cancel_stops_the_worker(jobs):
     jobs(2)
     before = _leftovers()
