@@ -437,15 +437,15 @@ def _alone(mesh, cell, arm, text, idle, settings, read, reach=None):
     return _plan(parts, {arm.name: text}, programs, [arm.name], "alone", cell)
 
 
-def _alone_plans(mesh, cell, arms, text, settings, reach):
+def _alone_plans(mesh, cell, arms, gcode, settings, reach):
     """Each of ``arms`` alone (:func:`_alone`) on the whole model's G-code,
     read once: [(programs, Candidate)] in the order of ``arms``, to be sent
     back from a worker process (:mod:`ambots.parallel`).  Without parts (a
     part's manifold cannot be pickled; the chosen plan's are made again by
     :func:`split`), and with programs and events only for the fastest (the
-    only one of them that can be chosen, see :func:`_best`).  ``text``:
-    that G-code, or the :class:`ambots.slicer.WholeModel` to write it."""
-    text = text.text() if hasattr(text, "text") else text
+    only one of them that can be chosen, see :func:`_best`).  ``gcode()``
+    returns that G-code (written once)."""
+    text = gcode()
     read = {}
     plans = [_alone(mesh, cell, arm, text, [a for a in cell.arms if a.name != arm.name], settings, read, reach)
              for arm in arms]
@@ -454,15 +454,15 @@ def _alone_plans(mesh, cell, arms, text, settings, reach):
             for i, (_, _, programs, c) in enumerate(plans)]
 
 
-def _received(alone, text, cell):
+def _received(alone, gcode, cell):
     """:func:`_alone_plans`' result as plans (parts, sliced, programs,
-    Candidate); the sliced text (``text``, as there) only for the one with
-    programs."""
+    Candidate); the sliced text (``gcode()``, as there) only for the one
+    with programs."""
     out = []
     for programs, c in alone:
         sliced = None
         if programs is not None:
-            sliced = {c.arms[0]: text.text() if hasattr(text, "text") else text}
+            sliced = {c.arms[0]: gcode()}
             _own_arms(programs, cell)
         out.append((None, sliced, programs, c))
     return out
@@ -503,8 +503,9 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
             shared_arm_kinematics(arm)
         if whole is not None:
             whole.toolpaths()            # made once, before the fork: the plans of both processes clip it
-        text = whole if whole is not None else slice_mesh(job.mesh, settings, backend=slicer)
-        background = Forked(lambda: _alone_plans(job.mesh, cell, arms, text, settings, reach))
+        # the whole model's G-code: the built-in slicer's written when asked (once), another's now
+        gcode = whole.text if whole is not None else (lambda t=slice_mesh(job.mesh, settings, backend=slicer): t)
+        background = Forked(lambda: _alone_plans(job.mesh, cell, arms, gcode, settings, reach))
     if len(arms) > 1:
         try:
             plan = _cooperative(job, cell, arms, seam, settings, reach, None, slicer, whole, mode, idle)
@@ -512,7 +513,7 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
             if background is not None:
                 background.cancel()
             raise
-        alone = _received(background.result(), text, cell) if background else []
+        alone = _received(background.result(), gcode, cell) if background else []
         timed = [p[3].makespan_s for p in alone if p[3].makespan_s]
         busy = plan[3].busy_s
         if (timed and busy and len(busy) == len(arms) and plan[3].makespan_s < min(timed)
