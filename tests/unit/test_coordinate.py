@@ -503,6 +503,31 @@ def test_sequential_parks_the_waiting_arms_clear_of_the_bed():
         assert abs(m.x) > sx or abs(m.y) > sy
 
 
+def test_a_scheduled_step_waits_only_for_work_within_the_zone_of_it():
+    """Worked out by hand: arms a and b across one plane, zone 50 mm.  Each
+    step's footprint is its closest distance to the plane.  b's step waits
+    for the last of a's steps that ended before it starts and comes within
+    the zone of it, not for a step that keeps the zone; nor again for what
+    an earlier step of b already waited for."""
+    from types import SimpleNamespace
+    from ambots.coordinate.schedule import Act
+    from ambots.coordinate.timeline import _barriers
+    act = lambda S, C, d: Act("chunk", 0, S, C, np.array([d]))
+    acts = {"a": [act(0, 10, 0.0),       # at the seam
+                  act(10, 20, 40.0),     # 40 mm off it
+                  act(20, 30, 90.0)],    # far
+            "b": [act(0, 10, 60.0),      # far while a is at the seam: no wait
+                  act(20, 25, 20.0),     # a ended 0 and 1 by now; 20 + 40 >= 50, 20 + 0 < 50: waits for a's 0
+                  act(30, 40, 5.0),      # a ended 2 (95: clear) and 1 (45 < 50): waits for a's 1
+                  act(40, 50, 0.0)]}     # nothing new within the zone: no wait
+    seams = SimpleNamespace(nbrs={"a": ["b"], "b": ["a"]}, where={"a": {"b": 0}, "b": {"a": 0}},
+                            Z={"a": np.array([50.0]), "b": np.array([50.0])})
+    _barriers(acts, seams, {"a": SimpleNamespace(id=1), "b": SimpleNamespace(id=2)})
+    assert [x.waits for x in acts["b"]] == [{}, {"a": 0}, {"a": 1}, {}]
+    assert [x.report for x in acts["a"]] == [2, 2, None]
+    assert [x.waits for x in acts["a"]] == [{}, {}, {}]     # b's steps ended by then keep the zone from a's
+
+
 def test_the_timeline_counts_the_joint_moves_to_and_from_the_park_position():
     """The firmware comes down from the park position in one joint move
     (straight in joint space): the nozzle bulges off the straight line, here
