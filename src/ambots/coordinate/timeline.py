@@ -194,7 +194,11 @@ def _barriers(acts, seams, arm_of):
     overlapped s in the schedule were checked against it by the schedule;
     a step of b that comes after s in the schedule and comes within the zone
     of s waits for s (or a later step of n) by the same rule from b's side.
-    Session 18, the four-arm 300 mm plate: 20,587 -> 19,896 s (3 chunk
+    The layers keep their order where it matters: the schedule starts a
+    layer only when the neighbours have finished the one below, so a step
+    of the next layer waits for every step of theirs below it that comes
+    within the zone of it; elsewhere an arm may go on to its next layer
+    while a neighbour, a zone away, still prints the one below.  Session 18, the four-arm 300 mm plate: 20,587 -> 19,896 s (3 chunk
     bands; every step waiting for every earlier step of its neighbours made
     the arms wait for work that was nowhere near them)."""
     ends = {n: [act.C for act in acts[n]] for n in acts}
