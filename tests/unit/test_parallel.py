@@ -165,3 +165,8 @@ def test_a_job_planned_with_workers_is_the_job_planned_in_one_process(jobs, tmp_
     assert [p.arm.name for p in two.parts] == two.chosen.arms
     assert abs(two.parts[0].volume - one.parts[0].volume) < 1e-6 * one.parts[0].volume
     assert all(p.arm is cell.arm(n) for n, p in two.programs.items())
+    # the chosen arm's G-code of the whole model: the worker's text, sent back as plain text
+    # (without the writer's reading); in one process the text as written, with it
+    assert len(two.chosen.arms) == 1 and two.sliced == one.sliced
+    name = two.chosen.arms[0]
+    assert type(two.sliced[name]) is str and one.sliced[name].layers is not None
