@@ -262,7 +262,7 @@ def _park_time(planner, prev, msg, home):
         lead = planner.joint_move_to(planner.bed_mm_to_base(np.array([prev]))[0], home)
         if lead.error is None:
             q = lead.Q[-1]
-    block = planner.joint_move_to(planner.bed_mm_to_base(np.array([[msg.x, msg.y, msg.z]]))[0], q)
+    block = planner.move_to(planner.bed_mm_to_base(np.array([[msg.x, msg.y, msg.z]]))[0], q)
     return block.duration if block.error is None else 0.0
 
 

@@ -461,19 +461,32 @@ class MotionPlanner:
         pointing down: straight in joint space when clear, else OMPL."""
         return self._timed(self._joint_move_to(target_base, q0, line, layer))
 
-    def _joint_move_to(self, target_base, q0, line=0, layer=0):
+    def move_to(self, target_base, q0, line=0, layer=0):
+        """An A7: joint-space move of the nozzle to ``target_base`` (3,)
+        base-frame m, pointing down, in the arm's reference posture: the
+        target's IK starts from the home pose (from ``q0`` if it fails), so
+        the arm stands at a park position with the same joints every time,
+        whatever it printed before.  Along a print the IK starts from the
+        joints before, and a redundant arm drifts (the Panda of the
+        three-arm cell: 2.6 rad on joints 1 and 3 after hours); the joint
+        moves from the park position down to the part
+        (:class:`~ambots.coordinate.parking.JointMoves`) are then the ones
+        the coordinator checked."""
+        return self._timed(self._joint_move_to(target_base, q0, line, layer,
+                                               seed=np.asarray(self.arm.profile.home, dtype=float)))
+
+    def _joint_move_to(self, target_base, q0, line=0, layer=0, seed=None):
         q0 = np.asarray(q0, dtype=float)
-        try:
-            q1 = self.kin.ik(target_base, q0, self.down)
-        except UnreachableError as exc:
-            q1 = None
-            home = np.asarray(self.arm.profile.home, dtype=float)
+        seeds = [q0, np.asarray(self.arm.profile.home, dtype=float)] if seed is None else [seed, q0]
+        q1, why = None, None
+        for s in seeds:
             try:
-                q1 = self.kin.ik(target_base, home, self.down)
-            except UnreachableError:
-                pass
-            if q1 is None:
-                return self._still(q0, line, layer, MotionError(line, "unreachable: %s" % exc))
+                q1 = self.kin.ik(target_base, s, self.down)
+                break
+            except UnreachableError as exc:
+                why = why or exc
+        if q1 is None:
+            return self._still(q0, line, layer, MotionError(line, "unreachable: %s" % why))
         return self._joint_path(q0, q1, line, layer)
 
     def _joint_path(self, q0, q1, line=0, layer=0):

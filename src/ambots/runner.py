@@ -389,7 +389,7 @@ class ArmRunner:
                                                        if self.block is not None else ""))
             return
         target = self.planner.bed_mm_to_base(np.array([[msg.x, msg.y, msg.z]]))[0]
-        block = self.planner.joint_move_to(target, self.q, line=self.done_line, layer=self.layer)
+        block = self.planner.move_to(target, self.q, line=self.done_line, layer=self.layer)
         if block.error is not None:
             self.stats.ik_failures += 1
             self._error(0, "A7 X%g Y%g Z%g: %s" % (msg.x, msg.y, msg.z, block.error.message))
@@ -455,7 +455,7 @@ class ArmRunner:
         src = cur["src"]
         if src[0] == "manual":
             target = self.planner.bed_mm_to_base(np.array([src[1:4]], dtype=float))[0]
-            self.block = self.planner.joint_move_to(target, self.q, line=self.done_line, layer=self.layer)
+            self.block = self.planner.move_to(target, self.q, line=self.done_line, layer=self.layer)
             self.after_block = ArmState[cur["after"]] if cur["after"] else None
         else:
             item = self.items[int(src[1])]
@@ -465,8 +465,8 @@ class ArmRunner:
             elif isinstance(item, Directive):          # a MoveTo of the program
                 msg = item.message
                 target = self.planner.bed_mm_to_base(np.array([[msg.x, msg.y, msg.z]]))[0]
-                self.block = self.planner.joint_move_to(target, self.q, line=item.line,
-                                                        layer=self.layer_of_line[item.line])
+                self.block = self.planner.move_to(target, self.q, line=item.line,
+                                                  layer=self.layer_of_line[item.line])
             else:
                 rest = _remaining(item.segments, cur["line"], cur["line_done"], self.nozzle_mm())
                 self.block = self.planner.plan_moves(rest, self.q) if rest else None
@@ -621,8 +621,8 @@ class ArmRunner:
         if target == self.id and isinstance(msg, MoveTo):
             target_base = self.planner.bed_mm_to_base(np.array([[msg.x, msg.y, msg.z]]))[0]
             self._block_src = ["item", self.idx - 1]
-            self._begin(self.planner.joint_move_to(target_base, self.q, line=item.line,
-                                                   layer=self.layer_of_line[item.line]), self.clock)
+            self._begin(self.planner.move_to(target_base, self.q, line=item.line,
+                                             layer=self.layer_of_line[item.line]), self.clock)
             self.stats.plans[self.block.planned] = self.stats.plans.get(self.block.planned, 0) + 1
             return
         if target == self.id and isinstance(msg, Pause):

@@ -1,8 +1,9 @@
 """Does cooperation pay?  Models of our own making, of different sizes and
 shapes (none is the demo's or the beam's): per model the makespan of the
-best single arm, of the two arms of the default cell together, and of the
-four arms of config/cells/four_arms.yaml together (with that cell's best
-single arm), all timed by the one timing law (``ambots.estimate``, as the
+best single arm, of the two arms of the default cell together, of the
+three arms of config/cells/three_arms.yaml around a point (the ring and
+the hex plate) and of the four arms of config/cells/four_arms.yaml
+together (each with that cell's best single arm), all timed by the one timing law (``ambots.estimate``, as the
 planner times its candidates), and the plan the planner chooses
 (``ambots.job.run_job``: never slower than one arm).  Goals (issue
 "Cooperation pays"): no chosen plan slower than the best arm alone (ratio
@@ -14,8 +15,8 @@ Then every chosen plan runs in the offline simulation on one clock
 bodies checked continuously), once as planned, then with every block
 of each arm's motion stretched by a random factor in [0.5, 2] (``--slow
 ARM=0.5:2``, seeds 1, 2 and 3 when more than one arm prints, seed 1
-otherwise): contacts must be 0 and the simulated makespan is
-printed next to the estimate.  ``BENCH_COOPERATION_SIM=0`` skips the
+otherwise): contacts (arm-arm, arm-bed, arm-part) must be 0 and the
+simulated makespan is printed next to the estimate.  ``BENCH_COOPERATION_SIM=0`` skips the
 simulations (the estimates take about a minute in all)."""
 import math
 import os
@@ -154,15 +155,18 @@ def _row(label, cell, path, simulate_runs):
             t1 = time.perf_counter()
             res = simulate(job.programs, cell, slow=slow, seed=seed)
             motion = check_motion(res, cell)
-            print("    simulated (%s): makespan %.0f s (estimate %.0f s), %s, contacts %d, closest %s mm; %.0f s wall"
-                  % (tag, res.makespan_s, chosen.makespan_s, "finished" if res.finished else "NOT finished",
-                     sum(motion["collisions"].values()), motion["min_clearance_mm"], time.perf_counter() - t1),
-                  flush=True)
+            hits = motion["collisions"]
+            print("    simulated (%s): makespan %.0f s (estimate %.0f s), %s, contacts %d (%s), closest %.1f mm; "
+                  "%.0f s wall" % (tag, res.makespan_s, chosen.makespan_s, "finished" if res.finished else
+                                   "NOT finished", sum(hits.values()),
+                                   ", ".join("%s %d" % kv for kv in sorted(hits.items())),
+                                   motion["min_clearance_mm"], time.perf_counter() - t1), flush=True)
     return ratio(chosen), ratio(together)
 
 
 def main():
     two = load_cell(default_cell_path())
+    three = load_cell(data_path("config", "cells", "three_arms.yaml"))
     four = load_cell(data_path("config", "cells", "four_arms.yaml"))
     nozzle_distances([two, four])
     sim = os.environ.get("BENCH_COOPERATION_SIM", "1") != "0"
@@ -173,6 +177,8 @@ def main():
             path = os.path.join(tmp, "".join(c if c.isalnum() else "_" for c in name) + ".stl")
             mesh.export(path)
             cells = [two, four] if "plate" in name or "ring" in name or "box 300" in name else [two]
+            if name.startswith(("ring", "hex plate")):          # three around a point (the Panda by data)
+                cells.insert(1, three)
             rows.append((name, path, cells))
         for name, path, cells in rows:
             for cell in cells:

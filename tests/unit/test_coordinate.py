@@ -554,6 +554,78 @@ def test_the_timeline_counts_the_joint_moves_to_and_from_the_park_position():
     assert abs((est @ towards_ur10).max() - (low @ towards_ur10).max()) < 1.0
 
 
+def test_an_a7_parks_a_redundant_arm_in_the_same_joints_whatever_it_printed_before():
+    """A Panda (seven joints for the nozzle's five constraints and its turn)
+    drifts along its redundancy while it prints, as each IK starts from
+    the joints before.  Measured in the three-arm cell on the 276 mm hex
+    plate: at its park position after hours of printing, joints 1 and 3
+    stood 2.6 rad from the park's joints reached from home, and the joint
+    move from there back to 10 mm over the part went 10 mm into the bed.
+    An A7 now solves its target from the home pose: the same joints at
+    the park position every time, from which that move keeps clear of the
+    bed, as the coordinator's estimate of the move said."""
+    from ambots.collision import ArmBody, bed_clearance
+    from ambots.coordinate import JointMoves
+    from ambots.motion import MotionPlanner
+    c = load_cell("config/cells/three_arms.yaml")
+    panda = c.arm("panda")
+    planner = MotionPlanner(panda, c)
+    body = ArmBody.from_arm(panda)
+    park = park_positions_mm(c, c.arms)["panda"]
+    park_base = planner.bed_mm_to_base(park[None])[0]
+    drifted = np.array([2.53, 1.23, -2.57, -2.95, 0.54, 1.74, -0.50])     # the simulation's, near the park
+    home = np.asarray(panda.profile.home, dtype=float)
+    q_park = planner.move_to(park_base, home).Q[-1]
+    assert np.allclose(planner.move_to(park_base, drifted).Q[-1], q_park, atol=1e-9)
+    assert np.linalg.norm(planner.world_to_bed_mm(planner.tip_world(q_park[None]))[0] - park) < 0.01
+    # a joint move seeded with where the arm is keeps the drift (the old A7)
+    kept = planner.joint_move_to(park_base, drifted).Q[-1]
+    assert np.abs(kept - q_park).max() > 2.0
+    over_part = (-54.902, -86.368, 11.0)                  # the hex plate's chunk start, 10 mm over layer 2
+    down = lambda q: bed_clearance(body, planner.joint_move_to(planner.bed_mm_to_base(
+        np.array([over_part]))[0], q).Q, c).min() * 1000.0
+    assert down(kept) < -5.0                              # from the drifted joints: into the bed
+    assert down(q_park) > 5.0                             # from the park's own joints: clear
+    est = JointMoves(c, c.arms).clearance_mm("panda", park, over_part, (-138.0, -87.0, 0.0), (138.0, 87.0, 1.0))
+    assert est == pytest.approx(down(q_park), abs=3.0)
+
+
+def test_the_timeline_leaves_the_part_straight_up_and_comes_back_clear_of_the_bed(n_arm_jobs):
+    """Three arms around a point: an arm leaving the part for its park
+    position first lifts straight up to the park's height (where it leaves,
+    its joints are those of the print, which no estimate here follows), and
+    the first move after a park comes down from the park's joints to a
+    height the firmware's joint move reaches clear of the bed, then
+    straight down."""
+    from ambots.collision import ArmBody, bed_clearance
+    from ambots.motion import MotionPlanner
+    c, parts, sliced, programs, _ = n_arm_jobs["three_arms"]
+    park = park_positions_mm(c, [p.arm for p in parts])
+    checked = lifted = 0
+    for name, prog in programs.items():
+        arm = prog.arm
+        planner = MotionPlanner(arm, c)
+        body = ArmBody.from_arm(arm)
+        q_park = planner.move_to(planner.bed_mm_to_base(park[name][None])[0], np.asarray(arm.profile.home)).Q[-1]
+        lines = prog.lines
+        own = [i for i, ln in enumerate(lines) if ln.startswith(";@A7 R%d " % arm.id)]
+        assert own
+        for i in own:
+            before = [ln for ln in lines[:i] if ln.startswith("G")]
+            if any(ln.startswith("G1") and " E" in ln and " X" in ln for ln in before):      # it printed before
+                assert before[-1] == "G0 Z%.3f F9000" % park[name][2], (name, i, before[-1])
+                lifted += 1
+            after = next((ln for ln in lines[i + 1:] if ln.startswith("G0 X")), None)
+            if after is None:
+                continue                                   # the end of the job
+            w = dict((t[0], float(t[1:])) for t in after.split()[1:])
+            move = planner.joint_move_to(planner.bed_mm_to_base(np.array([[w["X"], w["Y"], w["Z"]]]))[0], q_park)
+            assert move.error is None
+            assert bed_clearance(body, move.Q, c).min() >= 0.0, (name, after)
+            checked += 1
+    assert checked >= 1 and lifted >= 2, (checked, lifted)      # a retreat and back, and the last parks
+
+
 def test_robot_id_0_is_an_id_like_any_other(cell, job):
     """The default cell numbers its arms from 0 (the original's ids): its
     programs are those of the same cell numbered from 1, id for id (an id 0

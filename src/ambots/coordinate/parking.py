@@ -6,7 +6,14 @@ the timeline counts in its steps' footprints.
 Units: mm in the bed frame."""
 import numpy as np
 
-__all__ = ["home_positions_mm", "park_positions_mm", "JointMoves"]
+__all__ = ["home_positions_mm", "park_positions_mm", "JointMoves", "safe_height", "APPROACH_MM", "CLEAR_MM"]
+
+#: a first move from home or the park position arrives this far (mm) over
+#: the top of what is printed (then the nozzle goes straight down)
+APPROACH_MM = 10.0
+#: the arm's bodies keep at least this (mm) from the bed and the printed box on a
+#: joint move between the part and home or the park position
+CLEAR_MM = 5.0
 
 
 def home_positions_mm(cell, arms):
@@ -156,3 +163,19 @@ class JointMoves:
         part = box_clearance(A @ inv[:3, :3].T + inv[:3, 3], B @ inv[:3, :3].T + inv[:3, 3], r,
                              np.asarray(box_lo_mm) / 1000.0, np.asarray(box_hi_mm) / 1000.0)
         return float(min(bed_clearance(body, Q, self.cell).min(), part.min())) * 1000.0
+
+
+def safe_height(moves, name, start, xy, z_low, park_z, box):
+    """The lowest height (mm) of ``z_low``, ``z_low`` + 20, + 40, + 80 and
+    the park height at which the joint move between ``start`` (bed mm;
+    None: home) and (``xy``, height) keeps :data:`CLEAR_MM` from the bed and
+    the printed ``box`` ((lo, hi) bed mm); the highest if none does.
+    ``moves``: :class:`JointMoves`, or None (no check: ``z_low``)."""
+    cands = sorted({z for z in (z_low, z_low + 20.0, z_low + 40.0, z_low + 80.0) if z < park_z} | {park_z})
+    if moves is None:
+        return cands[0]
+    for z in cands:
+        c = moves.clearance_mm(name, start, (xy[0], xy[1], z), *box)
+        if c is not None and c >= CLEAR_MM:
+            return z
+    return cands[-1]

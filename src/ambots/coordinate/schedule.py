@@ -10,6 +10,7 @@ from typing import Optional
 
 import numpy as np
 
+from ambots.coordinate.parking import APPROACH_MM, safe_height
 from ambots.coordinate.steps import _order_runs, first_start, seg_time
 
 __all__ = ["Schedule", "Act"]
@@ -31,6 +32,10 @@ class Act:
     segs: list = field(default_factory=list)
     waits: dict = field(default_factory=dict)    #: {other arm: index of its step to wait for}
     report: Optional[int] = None  #: the arm that first waits for this step's end (robot id; 0 is one), or None
+    #: a chunk started from home or the park position: the height (mm) its joint move
+    #: arrives at over the chunk's start; a retreat or park from the part: the height
+    #: the nozzle lifts to before the joint move (:func:`~ambots.coordinate.parking.safe_height`)
+    z: Optional[float] = None
 
 
 def _path_time(pos, segs):
@@ -71,6 +76,17 @@ class Schedule:
         self.done = {n: False for n in names}
         self.t_free = {n: 0.0 for n in names}
         self._arrays = {}                                                          # (arm, layer) -> arrays
+        # the part printed so far, for the joint moves' clearance: the whole
+        # model's footprint up to the top of a layer
+        ends = [s.end for (_, layer), cs in chunks.items() for c in cs for s in c[0]]
+        xy = np.array([e[:2] for e in ends], dtype=float).reshape(-1, 2)
+        self.lo_xy = xy.min(axis=0) if len(xy) else np.zeros(2)
+        self.hi_xy = xy.max(axis=0) if len(xy) else np.zeros(2)
+        self.tops = np.zeros(max(n_layers, 1))
+        for (_, layer), cs in chunks.items():
+            for c in cs:
+                self.tops[layer] = max(self.tops[layer], max(s.end[2] for s in c[0]))
+        self.tops = np.maximum.accumulate(self.tops)
 
     # ---- the state
     def state_d(self, b, t):
@@ -86,14 +102,31 @@ class Schedule:
         self.parked[n] = at_park
         self.first[n] = False
 
+    def box(self, layer):
+        """The part printed by the time an arm prints ``layer`` ((lo, hi) bed
+        mm): the model's footprint up to the top of the layer as many layers
+        on as the arms can be apart (a layer starts when the adjacent arms
+        have printed the one before)."""
+        top = float(self.tops[min(layer + len(self.names) - 1, len(self.tops) - 1)])
+        return (self.lo_xy[0], self.lo_xy[1], 0.0), (self.hi_xy[0], self.hi_xy[1], top)
+
     def to_park(self, n, t, kind):
         p = np.asarray(self.park[n], dtype=float)
         dur = float(np.linalg.norm(p - self.pos[n])) / _JOINT_MM_S + _JOINT_S
         fp = self.pos_d[n].copy()
-        if not self.parked[n]:                     # the joint move up there (lifted 10 mm from the part)
-            fp = np.minimum(fp, self.seams.path_d(n, None, p) if self.first[n] else
-                            self.seams.path_d(n, self.pos[n] + (0.0, 0.0, 10.0), p))
-        self.start(n, Act(kind, self.layer_of[n], t, t + dur, fp), p, True)
+        z = None
+        if self.first[n]:                          # the joint move there from home
+            fp = np.minimum(fp, self.seams.path_d(n, None, p))
+        elif not self.parked[n]:
+            # straight up to the park height, then the joint move: where the
+            # arm leaves the part its joints are those of the print, which a
+            # redundant arm reaches by a drift no model here follows (a Panda
+            # swung 25 mm below the bed on a joint move to its park position
+            # from 10 mm over the part); 50 mm over the printable height, the
+            # swing stays over every printable point
+            z = float(p[2])
+            fp = np.minimum(fp, self.seams.path_d(n, (self.pos[n][0], self.pos[n][1], z), p))
+        self.start(n, Act(kind, self.layer_of[n], t, t + dur, fp, z=z), p, True)
 
     def layer_ready(self, n, layer, t):
         """Every adjacent arm has printed ``layer``, by time t."""
@@ -117,15 +150,22 @@ class Schedule:
         return out
 
     def _joint_d(self, n, layer, ci, first):
-        """Closest distances to the planes (P,) of the joint move to chunk ci's
-        start: from home (``first``) or from the park position (kept)."""
+        """(closest distances to the planes (P,), height (mm)) of the joint
+        move to over chunk ci's start from home (``first``) or from the park
+        position: it arrives :data:`APPROACH_MM` over the part printed or
+        higher, until the arm's bodies keep clear of the bed and the part
+        (:func:`~ambots.coordinate.parking.safe_height`; the nozzle then
+        goes straight down, no nearer any plane than the start); kept."""
         cache = self._layer_arrays(n, layer)[3]
         key = (ci, first)
         out = cache.get(key)
         if out is None:
             p = np.asarray(first_start(self.chunks[n, layer][ci][0]), dtype=float)
-            out = cache[key] = (self.seams.path_d(n, None, p) if first else
-                                self.seams.path_d(n, self.park[n], p + (0.0, 0.0, 10.0)))
+            a = None if first else self.park[n]
+            box = self.box(layer)
+            z = safe_height(self.seams.moves, n, a, p, max(float(p[2]), box[1][2]) + APPROACH_MM,
+                            float(self.park[n][2]), box)
+            out = cache[key] = (self.seams.path_d(n, a, (p[0], p[1], z)), z)
         return out
 
     def candidates(self, n, t):
@@ -144,7 +184,7 @@ class Schedule:
         FP = np.minimum(D[left], self.pos_d[n])
         if self.first[n] or self.parked[n]:         # the joint move there, from home or the park position
             first = self.first[n]
-            FP = np.minimum(FP, np.array([self._joint_d(n, layer, ci, first) for ci in left]).reshape(FP.shape))
+            FP = np.minimum(FP, np.array([self._joint_d(n, layer, ci, first)[0] for ci in left]).reshape(FP.shape))
         sm = self.seams
         nbrs = sm.nbrs[n]
         if nbrs:
@@ -198,10 +238,11 @@ class Schedule:
         ci, fp, _, _ = min(ok, key=lambda c: c[3])
         ps, _, _ = self.chunks[n, self.layer_of[n]][ci]
         here = None if self.first[n] or self.parked[n] else self.pos[n]
+        z = None if here is not None else self._joint_d(n, self.layer_of[n], ci, self.first[n])[1]
         segs = _order_runs(ps, None if here is None else tuple(here))
         dur = _path_time(here, segs)
         self.left[n].remove(ci)
-        self.start(n, Act("chunk", self.layer_of[n], t, t + dur, fp, segs), segs[-1].end, False)
+        self.start(n, Act("chunk", self.layer_of[n], t, t + dur, fp, segs, z=z), segs[-1].end, False)
         if not self.left[n]:
             self.layer_end[n, self.layer_of[n]] = t + dur
         return True

@@ -34,7 +34,7 @@ layers in 3 rounds of 17, 17 and 16): the fewest such rounds, with equal
 numbers of layers where that holds.  Each arm starts a round on top of its
 own previous slab, level with or above every other arm's.
 
-**First moves** (:func:`_safe_height`).  A turn's first move goes from
+**First moves** (:func:`~ambots.coordinate.parking.safe_height`).  A turn's first move goes from
 wherever the arm stands (its home pose, its park position) to
 ``APPROACH_MM`` over the top of everything printed so far, above its first
 point: a joint move of the firmware's planner, since the nozzle is not
@@ -51,17 +51,13 @@ from ambots.config import HEAD_TIP_GAP
 from ambots.protocol import MoveTo, Pause, Resume, Start
 
 from ambots.coordinate.emit import ArmProgram, Emitter
+from ambots.coordinate.parking import APPROACH_MM, CLEAR_MM, safe_height
 from ambots.coordinate.steps import Step
 
 __all__ = ["sequential_programs", "slab_rounds", "head_gap_mm", "SLAB_MARGIN_MM", "APPROACH_MM", "CLEAR_MM"]
 
 #: clearance (mm) the print head keeps over the other arms' slabs
 SLAB_MARGIN_MM = 1.0
-#: a turn's first move arrives this far (mm) over the top of everything printed so far
-APPROACH_MM = 10.0
-#: the arm's bodies keep at least this (mm) from the bed and the printed box on a
-#: turn's first joint move and on its park move
-CLEAR_MM = 5.0
 
 
 def head_gap_mm(arm):
@@ -108,21 +104,6 @@ def _layer_pieces(layers):
         if pieces:
             out.append((max(s.end[2] for s in pieces), pieces))
     return out
-
-
-def _safe_height(moves, name, start, xy, z_low, park_z, box):
-    """The lowest height (mm) of ``z_low``, ``z_low`` + 20, + 40, + 80 and
-    the park height at which the joint move between ``start`` (bed mm;
-    None: home) and (``xy``, height) keeps :data:`CLEAR_MM` from the bed and
-    the printed ``box`` ((lo, hi) bed mm); the highest if none does."""
-    cands = sorted({z for z in (z_low, z_low + 20.0, z_low + 40.0, z_low + 80.0) if z < park_z} | {park_z})
-    if moves is None:
-        return cands[0]
-    for z in cands:
-        c = moves.clearance_mm(name, start, (xy[0], xy[1], z), *box)
-        if c is not None and c >= CLEAR_MM:
-            return z
-    return cands[-1]
 
 
 def turns_of(arms, pieces, bounds):
@@ -179,13 +160,13 @@ def sequential_programs(arms, read, park, idle=(), mode="sequential", moves=None
         arm = arms[i]
         name = arm.name
         first = layers[0][1][0].start
-        z_in = _safe_height(moves, name, where[name], first, max(top, first[2]) + APPROACH_MM,
+        z_in = safe_height(moves, name, where[name], first, max(top, first[2]) + APPROACH_MM,
                             float(park[name][2]), box(top))
         for n, (z, segs) in enumerate(layers):
             steps[name].append(Step(layers=[z], pieces=segs, approach=z_in if n == 0 else None))
         top = max(top, max(z for z, _ in layers))
         last = layers[-1][1][-1].end
-        z_out = _safe_height(moves, name, tuple(park[name]), last, max(top, last[2]) + APPROACH_MM,
+        z_out = safe_height(moves, name, tuple(park[name]), last, max(top, last[2]) + APPROACH_MM,
                              float(park[name][2]), box(top))
         steps[name].append(Step(park=park[name], lift_to=z_out))
         where[name] = tuple(park[name])

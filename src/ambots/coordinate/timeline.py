@@ -220,7 +220,9 @@ def _barriers(acts, seams, arm_of):
 def _steps(acts, names, park, n_layers):
     """An arm's scheduled acts as steps: the layer changes up to the act's
     layer (a park: to the last), its waits (in the cell's order), the chunk
-    printed or the park position, its report; the mark is the act's index."""
+    printed (from home or the park position: over its start at the act's
+    height, then down) or the park position (lifted to the act's height
+    first), its report; the mark is the act's index."""
     steps, marked = [], -1
     for i, act in enumerate(acts):
         upto = act.layer if act.kind == "chunk" else (n_layers - 1 if act.kind == "park" else -1)
@@ -229,9 +231,9 @@ def _steps(acts, names, park, n_layers):
             marked += 1
             st.layers.append(act.segs[-1].end[2] if marked == act.layer and act.segs else 0.0)
         if act.kind == "chunk":
-            st.travel, st.pieces = act.segs[0].start, act.segs
+            st.travel, st.pieces, st.approach = act.segs[0].start, act.segs, act.z
         else:
-            st.park = park
+            st.park, st.lift_to = park, act.z
         if act.report is not None:
             st.report, st.mark = act.report, i
         steps.append(st)
