@@ -59,15 +59,22 @@ def simulate(programs, cell, dt=2.0, max_time=10 * 24 * 3600.0, planner_kw=None,
     block of the arm's motion (a run of G-code moves between two
     directives, a park move) stretched by its own factor drawn uniformly
     from [lo, hi] (an arm whose speed varies from move to move; ``seed``
-    seeds the draws, one generator per arm); ``planner_cls``/``runner_cls``:
+    seeds the draws, one generator per arm); the joint moves are planned
+    as the firmware node plans them, against the bed
+    (:class:`~ambots.collision.CollisionCheck`; the other arms are left to
+    the barriers and the contact check after the run), unless
+    ``planner_kw`` gives an ``is_valid``; ``planner_cls``/``runner_cls``:
     subclasses of :class:`~ambots.motion.MotionPlanner` /
     :class:`~ambots.runner.ArmRunner` to use instead (e.g. ones that record
     more, see :mod:`ambots.export`).  Returns :class:`SimResult`."""
+    from ambots.collision import CollisionCheck
     from ambots.motion import MotionPlanner
     t_wall = time.perf_counter()
     runners = {}
     for i, (name, prog) in enumerate(programs.items()):
-        planner = (planner_cls or MotionPlanner)(prog.arm, cell, **(planner_kw or {}))
+        kw = dict(planner_kw or {})
+        kw.setdefault("is_valid", CollisionCheck(prog.arm, cell))     # the firmware node's check, the bed only
+        planner = (planner_cls or MotionPlanner)(prog.arm, cell, **kw)
         if slow and name in slow:
             factor = slow[name]
             if np.ndim(factor):

@@ -242,7 +242,7 @@ def test_nozzles_side_by_side_collide(cell, bodies):
 def test_firmware_check_says_what_a_pose_is_too_close_to(cell, bodies):
     """The firmware's is_valid (driver trajectory) names the obstacle, the
     clearance in mm and the closest links of a refused pose."""
-    from ambots.ros.firmware import CollisionCheck
+    from ambots.collision import CollisionCheck
     k, u = cell.arms
     check = CollisionCheck(k, cell, margin=0.005)
     Qk = solve(cell, k, bodies["kinova"], [[-0.01, -0.01, 0.0002], [-0.08, -0.01, 0.0002], [0.0, 0.0, -0.01]])

@@ -84,7 +84,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from ambots import topics
 from ambots.checkpoint import StateStore
 from ambots.clock import ArmReady
-from ambots.collision import ArmBody, bed_clearance, capsule_distances, clearance_between
+from ambots.collision import CollisionCheck
 from ambots.deposit import bead_area_m2
 from ambots.errors import ProtocolError
 from ambots.motion import MotionPlanner
@@ -299,61 +299,6 @@ class DepositMarkers:
     def n_beads(self):
         with self._lock:
             return sum(self._count.values())
-
-
-class CollisionCheck:
-    """``is_valid(Q)`` for one arm's planner: clear of the bed and, by at
-    least ``margin`` m, of every other arm at its last known joint vector
-    (:meth:`update`; arms not heard of yet are not checked)."""
-
-    def __init__(self, arm, cell, margin=0.005):
-        self.cell, self.margin = cell, margin
-        self.body = ArmBody.from_arm(arm)
-        self.others = {a.name: ArmBody.from_arm(a) for a in cell.arms if a.name != arm.name}
-        self.q_other = {}
-
-    def update(self, name, q):
-        self.q_other[name] = np.asarray(q, dtype=float)
-
-    def static(self, Q):
-        """The same check without the other arms (they move on; the planner
-        waits for them instead of failing)."""
-        Q = np.atleast_2d(np.asarray(Q, dtype=float))
-        return bed_clearance(self.body, Q, self.cell) >= 0.0
-
-    def __call__(self, Q):
-        Q = np.atleast_2d(np.asarray(Q, dtype=float))
-        ok = self.static(Q)
-        for name, q in list(self.q_other.items()):
-            if ok.any():
-                ok &= clearance_between(self.body, Q, self.others[name], np.tile(q, (len(Q), 1))) >= self.margin
-        return ok
-
-    def explain(self, q):
-        """Why joint vector ``q`` fails the check (or ``"clear"``): each
-        obstacle it is too close to, with the clearance in mm and the
-        closest pair of links, e.g. ``ur10 -34.65 mm (needs >= 5 mm):
-        bracelet_link / wrist_2_link``."""
-        q = np.asarray(q, dtype=float)[None]
-        why = []
-        bed = float(bed_clearance(self.body, q, self.cell)[0])
-        if bed < 0.0:
-            names = [str(n) for n in dict.fromkeys(self.body.names)]
-            links = [n for n in names if n != "base_link"]          # bed_clearance skips the base link
-            per_link = [float(bed_clearance(self.body, q, self.cell, skip=[m for m in names if m != n])[0])
-                        for n in links]
-            link = ": " + links[int(np.argmin(per_link))]
-            why.append("bed %.2f mm (needs >= 0)%s" % (bed / MM, link))
-        for name, qo in sorted(self.q_other.items()):
-            other = self.others[name]
-            A1, B1, r1 = self.body.capsules(q)
-            A2, B2, r2 = other.capsules(qo[None])
-            D = capsule_distances(A1, B1, r1, A2, B2, r2)[0]
-            i, j = np.unravel_index(int(np.argmin(D)), D.shape)
-            if D[i, j] < self.margin:
-                why.append("%s %.2f mm (needs >= %g mm): %s / %s" % (name, D[i, j] / MM, self.margin / MM,
-                                                                     self.body.names[i], other.names[j]))
-        return "; ".join(why) or "clear"
 
 
 class FirmwareNode:
