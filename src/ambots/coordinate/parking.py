@@ -6,7 +6,8 @@ the timeline counts in its steps' footprints.
 Units: mm in the bed frame."""
 import numpy as np
 
-__all__ = ["home_positions_mm", "park_positions_mm", "JointMoves", "safe_height", "APPROACH_MM", "CLEAR_MM"]
+__all__ = ["home_positions_mm", "park_positions_mm", "JointMoves", "safe_height", "lift_height", "APPROACH_MM",
+           "CLEAR_MM"]
 
 #: a first move from home or the park position arrives this far (mm) over
 #: the top of what is printed (then the nozzle goes straight down)
@@ -111,15 +112,28 @@ class JointMoves:
                                            down_in_base(arm))
         return Q[0] if ok[0] else None
 
-    def joints(self, name, a_mm, b_mm):
+    def redundant(self, name):
+        """Whether the arm has joints to spare for the nozzle's position, its
+        direction and (with a ``trail``) its turn: then the joints it prints
+        with drift along the spare freedom (each IK starts from the joints
+        before), and where it leaves the part no estimate follows them."""
+        kin = self.kin[name]
+        return kin.dof > 5 + (kin.trail is not None)
+
+    def joints(self, name, a_mm, b_mm, park=False):
         """Joint vectors (samples, n) of the joint move from nozzle-down at
         ``a_mm`` (None: the arm's home pose) to nozzle-down at ``b_mm``
-        (bed mm), or None if either end is out of reach."""
-        key = ("q", name, None if a_mm is None else tuple(np.round(a_mm, 6)), tuple(np.round(b_mm, 6)))
+        (bed mm), or None if either end is out of reach.  ``park``: the
+        move is an A7 (to the park position), whose end the firmware
+        solves from the home pose (:meth:`ambots.motion.MotionPlanner.
+        move_to`); otherwise from the move's start."""
+        key = ("q", name, None if a_mm is None else tuple(np.round(a_mm, 6)), tuple(np.round(b_mm, 6)), park)
         if key not in self._cache:
             home = np.asarray(self.arm[name].profile.home, dtype=float)
             qa = home if a_mm is None else self._ik(name, a_mm, home)
-            qb = None if qa is None else self._ik(name, b_mm, qa)
+            qb = None if qa is None else self._ik(name, b_mm, home if park else qa)
+            if qb is None and qa is not None and park:
+                qb = self._ik(name, b_mm, qa)
             Q = None
             if qb is not None:
                 u = np.linspace(0.0, 1.0, self.samples)[:, None]
@@ -127,15 +141,16 @@ class JointMoves:
             self._cache[key] = Q
         return self._cache[key]
 
-    def path(self, name, a_mm, b_mm):
+    def path(self, name, a_mm, b_mm, park=False):
         """Nozzle positions (K, 3), bed mm, on the joint move from nozzle-down
-        at ``a_mm`` (None: the arm's home pose) to nozzle-down at ``b_mm``,
-        only those at most at the printable height; empty if either end is
-        out of reach (the firmware reports that itself)."""
-        key = (name, None if a_mm is None else tuple(np.round(a_mm, 6)), tuple(np.round(b_mm, 6)))
+        at ``a_mm`` (None: the arm's home pose) to nozzle-down at ``b_mm``
+        (``park``: an A7, :meth:`joints`), only those at most at the
+        printable height; empty if either end is out of reach (the firmware
+        reports that itself)."""
+        key = (name, None if a_mm is None else tuple(np.round(a_mm, 6)), tuple(np.round(b_mm, 6)), park)
         if key in self._cache:
             return self._cache[key]
-        Q = self.joints(name, a_mm, b_mm)
+        Q = self.joints(name, a_mm, b_mm, park)
         out = np.zeros((0, 3))
         if Q is not None:
             T = self.arm[name].base_pose @ self.kin[name].fk_batch(Q)
@@ -145,14 +160,14 @@ class JointMoves:
         self._cache[key] = out
         return out
 
-    def clearance_mm(self, name, a_mm, b_mm, box_lo_mm, box_hi_mm):
+    def clearance_mm(self, name, a_mm, b_mm, box_lo_mm, box_hi_mm, park=False):
         """The smallest clearance (mm) of the arm's bodies (its collision
         capsules, :class:`ambots.collision.ArmBody`) to the bed and to the
         box ``box_lo_mm`` .. ``box_hi_mm`` (bed frame, mm: the part printed
-        so far) on the joint move from ``a_mm`` (None: home) to ``b_mm``;
-        None if either end is out of reach."""
+        so far) on the joint move from ``a_mm`` (None: home) to ``b_mm``
+        (``park``: an A7, :meth:`joints`); None if either end is out of reach."""
         from ambots.collision import ArmBody, bed_clearance, box_clearance
-        Q = self.joints(name, a_mm, b_mm)
+        Q = self.joints(name, a_mm, b_mm, park)
         if Q is None:
             return None
         if name not in self._bodies:
@@ -165,17 +180,45 @@ class JointMoves:
         return float(min(bed_clearance(body, Q, self.cell).min(), part.min())) * 1000.0
 
 
+def _heights(z_low, park_z):
+    """The heights tried (mm), lowest first: ``z_low``, + 20, + 40, + 80
+    under the park height, and the park height."""
+    return sorted({z for z in (z_low, z_low + 20.0, z_low + 40.0, z_low + 80.0) if z < park_z} | {park_z})
+
+
 def safe_height(moves, name, start, xy, z_low, park_z, box):
     """The lowest height (mm) of ``z_low``, ``z_low`` + 20, + 40, + 80 and
     the park height at which the joint move between ``start`` (bed mm;
     None: home) and (``xy``, height) keeps :data:`CLEAR_MM` from the bed and
     the printed ``box`` ((lo, hi) bed mm); the highest if none does.
     ``moves``: :class:`JointMoves`, or None (no check: ``z_low``)."""
-    cands = sorted({z for z in (z_low, z_low + 20.0, z_low + 40.0, z_low + 80.0) if z < park_z} | {park_z})
+    cands = _heights(z_low, park_z)
     if moves is None:
         return cands[0]
     for z in cands:
         c = moves.clearance_mm(name, start, (xy[0], xy[1], z), *box)
+        if c is not None and c >= CLEAR_MM:
+            return z
+    return cands[-1]
+
+
+def lift_height(moves, name, p, park, z_low, box):
+    """The height (mm) to lift the nozzle to, straight up from ``p`` (bed
+    mm), before the A7 to the ``park`` position: the lowest of
+    :func:`safe_height`'s over ``p`` from which the joint move to the
+    park position keeps clear of the bed and the printed ``box``; the park
+    position's height for an arm with joints to spare
+    (:meth:`JointMoves.redundant`: where it leaves the part its joints are
+    those of the print, which no estimate here follows; the Panda of the
+    three-arm cell, 2.6 rad off on joints 1 and 3 after hours, swung 10 mm
+    into the bed on its joint move to the park position from 10 mm over
+    the part).  From there the swing stays over the printable height."""
+    park_z = float(park[2])
+    if moves is None or moves.redundant(name):
+        return park_z if moves is not None else min(z_low, park_z)
+    cands = _heights(z_low, park_z)
+    for z in cands:
+        c = moves.clearance_mm(name, (p[0], p[1], z), park, *box, park=True)
         if c is not None and c >= CLEAR_MM:
             return z
     return cands[-1]

@@ -10,7 +10,7 @@ from typing import Optional
 
 import numpy as np
 
-from ambots.coordinate.parking import APPROACH_MM, safe_height
+from ambots.coordinate.parking import APPROACH_MM, lift_height, safe_height
 from ambots.coordinate.steps import _order_runs, first_start, seg_time
 
 __all__ = ["Schedule", "Act"]
@@ -34,7 +34,8 @@ class Act:
     report: Optional[int] = None  #: the arm that first waits for this step's end (robot id; 0 is one), or None
     #: a chunk started from home or the park position: the height (mm) its joint move
     #: arrives at over the chunk's start; a retreat or park from the part: the height
-    #: the nozzle lifts to before the joint move (:func:`~ambots.coordinate.parking.safe_height`)
+    #: the nozzle lifts to before the joint move (:func:`~ambots.coordinate.parking.safe_height`,
+    #: :func:`~ambots.coordinate.parking.lift_height`)
     z: Optional[float] = None
 
 
@@ -117,15 +118,11 @@ class Schedule:
         z = None
         if self.first[n]:                          # the joint move there from home
             fp = np.minimum(fp, self.seams.path_d(n, None, p))
-        elif not self.parked[n]:
-            # straight up to the park height, then the joint move: where the
-            # arm leaves the part its joints are those of the print, which a
-            # redundant arm reaches by a drift no model here follows (a Panda
-            # swung 25 mm below the bed on a joint move to its park position
-            # from 10 mm over the part); 50 mm over the printable height, the
-            # swing stays over every printable point
-            z = float(p[2])
-            fp = np.minimum(fp, self.seams.path_d(n, (self.pos[n][0], self.pos[n][1], z), p))
+        elif not self.parked[n]:                   # straight up, then the A7's joint move
+            box = self.box(self.layer_of[n])
+            z = lift_height(self.seams.moves, n, self.pos[n], p,
+                            max(float(self.pos[n][2]), box[1][2]) + APPROACH_MM, box)
+            fp = np.minimum(fp, self.seams.path_d(n, (self.pos[n][0], self.pos[n][1], z), p, park=True))
         self.start(n, Act(kind, self.layer_of[n], t, t + dur, fp, z=z), p, True)
 
     def layer_ready(self, n, layer, t):

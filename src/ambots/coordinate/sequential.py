@@ -43,7 +43,9 @@ where the G-code was.  That move is sampled here
 arm's bodies against the bed and the box of the parts printed so far (the
 footprint of the whole model, up to the top so far) and raised until it
 keeps ``CLEAR_MM``; then the nozzle goes straight down.  The lift before
-the A7 that parks it is chosen the same way.  Also a one-arm job with idle
+the A7 that parks it is chosen the same way
+(:func:`~ambots.coordinate.parking.lift_height`: the park height for an
+arm with joints to spare).  Also a one-arm job with idle
 arms (one turn, the idle arms parked first).
 
 Units: mm in the bed frame (G-code)."""
@@ -51,7 +53,7 @@ from ambots.config import HEAD_TIP_GAP
 from ambots.protocol import MoveTo, Pause, Resume, Start
 
 from ambots.coordinate.emit import ArmProgram, Emitter
-from ambots.coordinate.parking import APPROACH_MM, CLEAR_MM, safe_height
+from ambots.coordinate.parking import APPROACH_MM, CLEAR_MM, lift_height, safe_height
 from ambots.coordinate.steps import Step
 
 __all__ = ["sequential_programs", "slab_rounds", "head_gap_mm", "SLAB_MARGIN_MM", "APPROACH_MM", "CLEAR_MM"]
@@ -166,8 +168,7 @@ def sequential_programs(arms, read, park, idle=(), mode="sequential", moves=None
             steps[name].append(Step(layers=[z], pieces=segs, approach=z_in if n == 0 else None))
         top = max(top, max(z for z, _ in layers))
         last = layers[-1][1][-1].end
-        z_out = safe_height(moves, name, tuple(park[name]), last, max(top, last[2]) + APPROACH_MM,
-                             float(park[name][2]), box(top))
+        z_out = lift_height(moves, name, last, park[name], max(top, last[2]) + APPROACH_MM, box(top))
         steps[name].append(Step(park=park[name], lift_to=z_out))
         where[name] = tuple(park[name])
         hand = []

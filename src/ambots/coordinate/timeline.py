@@ -115,14 +115,15 @@ class Seams:
         d[(d < 0.0) & (d > -ROUNDING_MM)] = 0.0
         return d
 
-    def path_d(self, n, a, b):
+    def path_d(self, n, a, b, park=False):
         """Closest distance to each adjacent arm's plane on arm n's joint move
-        from ``a`` (None: home) to ``b`` below the printable height (inf: none)."""
+        from ``a`` (None: home) to ``b`` (``park``: an A7 to the park
+        position) below the printable height (inf: none)."""
         key = (n, None if a is None else tuple(np.asarray(a, dtype=float).tolist()),
-               tuple(np.asarray(b, dtype=float).tolist()))
+               tuple(np.asarray(b, dtype=float).tolist()), park)
         out = self._path_d.get(key)
         if out is None:              # the schedule asks again for every chunk it weighs: kept
-            P = self.moves.path(n, a, b) if self.moves is not None and len(self.N[n]) else np.zeros((0, 3))
+            P = self.moves.path(n, a, b, park) if self.moves is not None and len(self.N[n]) else np.zeros((0, 3))
             out = self._path_d[key] = self.dist(n, P).min(axis=0) if len(P) else np.full(len(self.N[n]), np.inf)
         return out.copy()
 
