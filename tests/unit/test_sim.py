@@ -215,3 +215,25 @@ def test_an_unreachable_line_stops_the_run_and_the_other_arm_is_told(cell, monke
     assert all(e["arm"] == kinova.id and "holding" in e["message"] for e in rep["errors"][1:])
     assert rep["arms"]["ur10"]["ik_failures"] == 1
     assert rep["arms"]["ur10"]["state"] == "ERROR"
+
+
+def test_the_simulation_plans_joint_moves_against_the_bed_as_the_firmware_does(cell):
+    """The offline run gives every arm's planner the firmware node's check
+    (``ambots.collision.CollisionCheck``, the bed): an A7 into the bed is
+    refused with what it would touch, as live, not executed into it."""
+    kinova, ur10 = cell.arm("kinova"), cell.arm("ur10")
+    programs = {
+        "kinova": program(kinova, ["G0 X-100 Y-60 Z5 F9000", "G1 X-60 Y-60 E1.5 F1200",
+                                   ";@A7 R%d X-60 Y-60 Z-30" % kinova.id,     # 30 mm into the bed
+                                   "G1 X-100 Y-60 E1.5"]),
+        "ur10": program(ur10, ["G0 X100 Y60 Z0.2 F9000", "G1 X60 Y60 E1.5 F1200"]),
+    }
+    result = simulate(programs, cell)
+    assert result.runners["kinova"].state is ArmState.ERROR
+    err = next(e for e in result.errors if e.robot == kinova.id)
+    assert "no collision-free path" in err.message and "bed" in err.message, err.message
+    assert check_motion(result, cell)["collisions"]["arm_bed"] == 0
+    assert result.runners["ur10"].state is ArmState.DONE          # the other arm carries on
+    # the same program without the check goes into the bed: the check is what keeps it out
+    bare = simulate(programs, cell, planner_kw={"is_valid": None})
+    assert check_motion(bare, cell)["collisions"]["arm_bed"] > 0
