@@ -148,7 +148,7 @@ def _concurrent(arms, read, park, home, n_layers, planes, zones, moves=None, chu
     if colour is not None:
         near = {a: [planes[a, b] for b in names if b in adjacent[a]] for a in names}
         zone = max([zones[a, b] for a in names for b in adjacent[a]] or [0.0])
-        programs = banded_programs(arms, read, park, n_layers, zone, near, colour, adjacent, home, zones)
+        programs = banded_programs(arms, read, park, n_layers, zone, near, colour, adjacent, home, zones, moves)
         if programs is not None:
             return programs
     # no two colours, or an arm between two seams cannot stand clear of both

@@ -7,13 +7,15 @@ import numpy as np
 
 from ambots.coordinate.bands import _phase_of, band_stats, choose_bands
 from ambots.coordinate.emit import ArmProgram, Emitter, resolve_waits
+from ambots.coordinate.parking import APPROACH_MM, lift_height
 from ambots.coordinate.steps import END, Step, Wait, _order_runs, close, cut_segment
 from ambots.coordinate.zones import distance_to_planes
 
 __all__ = ["banded_programs"]
 
 
-def banded_programs(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=None, zones=None):
+def banded_programs(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=None, zones=None,
+                    moves=None):
     """Two colours (every seam between adjacent arms separates a colour-0
     from a colour-1 arm).  ``planes[arm]``: the planes (n, o) between the
     arm and its adjacent arms; ``zone_mm``: the largest zone of an adjacent
@@ -44,7 +46,10 @@ def banded_programs(arms, read, park, n_layers, zone_mm, planes, colour, adjacen
     can get at most one phase ahead: at the next layer it moves towards the
     seam and waits).  At the end, the arms that finish away from their
     seams park only when their neighbours (which finish at the seams) are
-    done.  Returns the programs, or None when an arm with no work in a band
+    done, lifted straight up first as high as the A7 needs to keep clear
+    of the bed and the part (:func:`~ambots.coordinate.parking.lift_height`
+    with ``moves``, :class:`~ambots.coordinate.parking.JointMoves`; 10 mm
+    over the part without).  Returns the programs, or None when an arm with no work in a band
     cannot retreat into it without coming nearer than the band to another
     of its seams (:func:`_retreat`)."""
     names = [a.name for a in arms]
@@ -59,6 +64,10 @@ def banded_programs(arms, read, park, n_layers, zone_mm, planes, colour, adjacen
     phases = _phases(arms, segs_by, planes, bounds, k, colour, n_layers, lo)
     parks_first, park_waits = _banded_start(arms, names, phases, planes, adjacent, home, n_layers, k, lo,
                                             pair_zone)
+    ends = np.array([s.end for segs in segs_by.values() for s in segs if s.extrude], dtype=float).reshape(-1, 3)
+    top = float(ends[:, 2].max()) if len(ends) else 0.0
+    box = ((tuple(ends[:, :2].min(axis=0)) + (0.0,), tuple(ends[:, :2].max(axis=0)) + (top,)) if len(ends)
+           else ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)))
     emitters = {}
     for a in arms:
         em = Emitter(a, "concurrent", ["; seam zone %.1f mm, %d band(s) per layer from %s mm, colour %d"
@@ -76,7 +85,9 @@ def banded_programs(arms, read, park, n_layers, zone_mm, planes, colour, adjacen
             # them: it parks only when they are done (a joint move to the park
             # position is not a straight line, and it would pass them at work)
             em.step(Step(waits=[Wait(other.name, END) for other in nb]))
-        em.step(Step(park=park[a.name]))           # lift clear of the part, then go to the park position
+        # lift clear of the part, then go to the park position
+        lift = None if em.pos is None else lift_height(moves, a.name, em.pos, park[a.name], top + APPROACH_MM, box)
+        em.step(Step(park=park[a.name], lift_to=lift))
         emitters[a.name] = em
     resolve_waits(emitters)
     return {a.name: ArmProgram(a, "concurrent", emitters[a.name].lines, read[a.name][0], n_layers, k, start_first=True,
