@@ -56,7 +56,8 @@ import numpy as np
 from ambots.config import ArmInstance, pose_matrix
 from ambots.errors import KinematicsError, UnreachableError
 
-__all__ = ["ArmBody", "segment_distance", "capsule_distances", "clearance_between", "box_clearance",
+__all__ = ["ArmBody", "segment_distance", "capsule_distances", "clearance_between", "box_clearance", "box_clear",
+           "bed_box",
            "bed_clearance", "part_clearance", "SeamZone", "seam_zone", "seam_zone_mm", "seam_zones_mm",
            "CollisionCheck"]
 
@@ -345,6 +346,29 @@ def box_clearance(A, B, radii, box_min, box_max, mask=None):
     return ends.min(axis=1)
 
 
+def box_clear(A, B, radii, box_min, box_max, margin, mask=None):
+    """Whether each row's capsules keep ``margin`` (m) from the box: bool
+    (N,), the same answer as ``box_clearance(...) >= margin``, first from a
+    bound and searched (:func:`box_clearance`) only in the rows it leaves
+    open.  The bound: along a segment the box's signed distance is at
+    least, on every axis, the larger of the two ends' smaller distances
+    out of the box's face below and above."""
+    A, B = np.asarray(A, dtype=float), np.asarray(B, dtype=float)
+    radii = np.asarray(radii, dtype=float)
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        A, B, radii = A[:, mask], B[:, mask], radii[mask]
+    lo, hi = np.asarray(box_min, dtype=float), np.asarray(box_max, dtype=float)
+    below = np.minimum(lo - A, lo - B)                   # (N, C, 3)
+    above = np.minimum(A - hi, B - hi)
+    bound = np.maximum(below, above).max(axis=-1) - radii
+    ok = (bound >= margin).all(axis=1)
+    rows = np.flatnonzero(~ok)
+    if len(rows):
+        ok[rows] = box_clearance(A[rows], B[rows], radii, lo, hi) >= margin
+    return ok
+
+
 def bed_clearance(body, Q, cell, skip=("base_link",)):
     """Clearance (N,), m, of an arm at joint vectors ``Q`` (N, n) to the print
     bed: the slab ``cell.bed.size`` (x, y, thickness) below the bed's top
@@ -352,9 +376,13 @@ def bed_clearance(body, Q, cell, skip=("base_link",)):
     table, like the base link; names without the arm prefix)."""
     A, B, r = body.capsules(Q)
     inv = np.linalg.inv(cell.bed.pose)
+    return box_clearance(_transform(inv, A), _transform(inv, B), r, *bed_box(cell), body.mask(skip))
+
+
+def bed_box(cell):
+    """The bed's slab in its own frame (its top at z = 0): (lo, hi), m."""
     sx, sy, thick = cell.bed.size
-    return box_clearance(_transform(inv, A), _transform(inv, B), r,
-                         (-sx / 2, -sy / 2, -thick), (sx / 2, sy / 2, 0.0), body.mask(skip))
+    return (-sx / 2, -sy / 2, -thick), (sx / 2, sy / 2, 0.0)
 
 
 def part_clearance(body, Q, box_min, box_max, skip=()):

@@ -291,6 +291,27 @@ def test_box_clearance_matches_sampling():
     assert np.any(got < 0) and np.any(got > 0)
 
 
+def test_box_clear_answers_as_the_clearance_does():
+    """``box_clear`` (a bound first, the search where the bound cannot
+    tell) says the same as ``box_clearance >= margin`` on capsules far
+    from, near and inside a box, for margins either side of them."""
+    from ambots.collision import box_clear
+    rng = np.random.default_rng(4)
+    N, C = 400, 4
+    A = rng.uniform(-2, 2, (N, C, 3))
+    B = A + rng.normal(scale=0.5, size=(N, C, 3))
+    r = np.array([0.05, 0.02, 0.1, 0.0])
+    lo, hi = np.array([-0.5, -0.4, -0.1]), np.array([0.5, 0.4, 0.0])
+    ref = box_clearance(A, B, r, lo, hi)
+    mask = np.array([True, False, True, True])
+    ref_masked = box_clearance(A, B, r, lo, hi, mask)
+    for margin in (-0.05, 0.0, 0.005, 0.2, 1.0):
+        got = box_clear(A, B, r, lo, hi, margin)
+        np.testing.assert_array_equal(got, ref >= margin)
+        np.testing.assert_array_equal(box_clear(A, B, r, lo, hi, margin, mask), ref_masked >= margin)
+    assert 0 < (ref >= 0.2).sum() < N                  # both answers occur
+
+
 def test_box_clearance_exact_cases():
     A = np.array([[[-1.0, 0.1, 0.2]], [[-1.0, 2.0, 0.0]]])
     B = np.array([[[1.0, 0.1, 0.2]], [[1.0, 2.0, 0.0]]])

@@ -160,13 +160,10 @@ class JointMoves:
         self._cache[key] = out
         return out
 
-    def clearance_mm(self, name, a_mm, b_mm, box_lo_mm, box_hi_mm, park=False):
-        """The smallest clearance (mm) of the arm's bodies (its collision
-        capsules, :class:`ambots.collision.ArmBody`) to the bed and to the
-        box ``box_lo_mm`` .. ``box_hi_mm`` (bed frame, mm: the part printed
-        so far) on the joint move from ``a_mm`` (None: home) to ``b_mm``
-        (``park``: an A7, :meth:`joints`); None if either end is out of reach."""
-        from ambots.collision import ArmBody, bed_clearance, box_clearance
+    def _capsules(self, name, a_mm, b_mm, park):
+        """The arm's capsules (A, B (K, C, 3) in the bed's frame, m; radii;
+        the body) on the joint move of :meth:`joints`, or None."""
+        from ambots.collision import ArmBody
         Q = self.joints(name, a_mm, b_mm, park)
         if Q is None:
             return None
@@ -174,10 +171,40 @@ class JointMoves:
             self._bodies[name] = ArmBody.from_arm(self.arm[name])
         body = self._bodies[name]
         A, B, r = body.capsules(Q)
-        inv = np.linalg.inv(self.bed)                 # the box is in the bed frame
-        part = box_clearance(A @ inv[:3, :3].T + inv[:3, 3], B @ inv[:3, :3].T + inv[:3, 3], r,
-                             np.asarray(box_lo_mm) / 1000.0, np.asarray(box_hi_mm) / 1000.0)
-        return float(min(bed_clearance(body, Q, self.cell).min(), part.min())) * 1000.0
+        inv = np.linalg.inv(self.bed)
+        return A @ inv[:3, :3].T + inv[:3, 3], B @ inv[:3, :3].T + inv[:3, 3], r, body
+
+    def clearance_mm(self, name, a_mm, b_mm, box_lo_mm, box_hi_mm, park=False):
+        """The smallest clearance (mm) of the arm's bodies (its collision
+        capsules, :class:`ambots.collision.ArmBody`) to the bed (its link on
+        the table left out, as :func:`ambots.collision.bed_clearance` does)
+        and to the box ``box_lo_mm`` .. ``box_hi_mm`` (bed frame, mm: the
+        part printed so far) on the joint move from ``a_mm`` (None: home) to
+        ``b_mm`` (``park``: an A7, :meth:`joints`); None if either end is out
+        of reach."""
+        from ambots.collision import bed_box, box_clearance
+        caps = self._capsules(name, a_mm, b_mm, park)
+        if caps is None:
+            return None
+        A, B, r, body = caps
+        bed = box_clearance(A, B, r, *bed_box(self.cell), body.mask(("base_link",)))
+        part = box_clearance(A, B, r, np.asarray(box_lo_mm) / 1000.0, np.asarray(box_hi_mm) / 1000.0)
+        return float(min(bed.min(), part.min())) * 1000.0
+
+    def clear(self, name, a_mm, b_mm, box_lo_mm, box_hi_mm, margin_mm, park=False):
+        """Whether :meth:`clearance_mm` is at least ``margin_mm`` (False if
+        either end is out of reach), answered from a bound where it can
+        (:func:`ambots.collision.box_clear`): the schedule asks for every
+        chunk it weighs after a park."""
+        from ambots.collision import bed_box, box_clear
+        caps = self._capsules(name, a_mm, b_mm, park)
+        if caps is None:
+            return False
+        A, B, r, body = caps
+        margin = float(margin_mm) / 1000.0
+        return bool(box_clear(A, B, r, *bed_box(self.cell), margin, body.mask(("base_link",))).all()
+                    and box_clear(A, B, r, np.asarray(box_lo_mm) / 1000.0, np.asarray(box_hi_mm) / 1000.0,
+                                  margin).all())
 
 
 def _heights(z_low, park_z):
@@ -196,8 +223,7 @@ def safe_height(moves, name, start, xy, z_low, park_z, box):
     if moves is None:
         return cands[0]
     for z in cands:
-        c = moves.clearance_mm(name, start, (xy[0], xy[1], z), *box)
-        if c is not None and c >= CLEAR_MM:
+        if moves.clear(name, start, (xy[0], xy[1], z), *box, CLEAR_MM):
             return z
     return cands[-1]
 
@@ -218,7 +244,6 @@ def lift_height(moves, name, p, park, z_low, box):
         return park_z if moves is not None else min(z_low, park_z)
     cands = _heights(z_low, park_z)
     for z in cands:
-        c = moves.clearance_mm(name, (p[0], p[1], z), park, *box, park=True)
-        if c is not None and c >= CLEAR_MM:
+        if moves.clear(name, (p[0], p[1], z), park, *box, CLEAR_MM, park=True):
             return z
     return cands[-1]
