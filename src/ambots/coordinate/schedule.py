@@ -120,8 +120,7 @@ class Schedule:
             fp = np.minimum(fp, self.seams.path_d(n, None, p))
         elif not self.parked[n]:                   # straight up, then the A7's joint move
             box = self.box(self.layer_of[n])
-            z = lift_height(self.seams.moves, n, self.pos[n], p,
-                            max(float(self.pos[n][2]), box[1][2]) + APPROACH_MM, box)
+            z = lift_height(self.seams.moves, n, self.pos[n], p, float(self.pos[n][2]) + APPROACH_MM, box)
             fp = np.minimum(fp, self.seams.path_d(n, (self.pos[n][0], self.pos[n][1], z), p, park=True))
         self.start(n, Act(kind, self.layer_of[n], t, t + dur, fp, z=z), p, True)
 
@@ -149,10 +148,11 @@ class Schedule:
     def _joint_d(self, n, layer, ci, first):
         """(closest distances to the planes (P,), height (mm)) of the joint
         move to over chunk ci's start from home (``first``) or from the park
-        position: it arrives :data:`APPROACH_MM` over the part printed or
-        higher, until the arm's bodies keep clear of the bed and the part
-        (:func:`~ambots.coordinate.parking.safe_height`; the nozzle then
-        goes straight down, no nearer any plane than the start); kept."""
+        position: it arrives :data:`APPROACH_MM` over the start (under it
+        only the arm's own part, a layer lower) or higher, until the arm's
+        bodies keep clear of the bed and the part printed (:meth:`box`;
+        :func:`~ambots.coordinate.parking.safe_height`); the nozzle then goes
+        straight down, no nearer any plane than the start; kept."""
         cache = self._layer_arrays(n, layer)[3]
         key = (ci, first)
         out = cache.get(key)
@@ -160,8 +160,7 @@ class Schedule:
             p = np.asarray(first_start(self.chunks[n, layer][ci][0]), dtype=float)
             a = None if first else self.park[n]
             box = self.box(layer)
-            z = safe_height(self.seams.moves, n, a, p, max(float(p[2]), box[1][2]) + APPROACH_MM,
-                            float(self.park[n][2]), box)
+            z = safe_height(self.seams.moves, n, a, p, float(p[2]) + APPROACH_MM, float(self.park[n][2]), box)
             out = cache[key] = (self.seams.path_d(n, a, (p[0], p[1], z)), z)
         return out
 
