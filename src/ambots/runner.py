@@ -709,15 +709,17 @@ class ArmRunner:
             self.beads.append(Bead(b.tip[idx - 1], b.tip[idx], b.e_mm[idx], b.line[idx], b.layer[idx],
                                    self.block_t0 + b.t[idx]))
         if self.record:
-            # from the block's first waypoint when the block starts later than
-            # the last waypoint recorded: the pose the arm stood in until then
-            # (at a barrier the arm stands still; without this point the trace,
-            # interpolated, would move it during the wait, towards the block's
-            # first waypoint)
-            t0 = self.block_t0 + b.t[0]
-            sl_rec = slice(k0, k1 + 1) if k0 == 0 and t0 > self._trace_end else sl
+            # from waypoint k0 when the arm reaches it later than the last
+            # knot recorded: it stood there until then, at rest (a block
+            # starting after a barrier; a block resumed, A6, after a pause or
+            # a stop braked it to rest on k0).  Without this knot the trace,
+            # interpolated, would move the arm all through the wait, towards
+            # the next waypoint -- and, a Hermite cubic over the whole wait
+            # with that waypoint's speed, far off the path
+            t0 = self.block_t0 + b.t[k0]
+            sl_rec = slice(k0, k1 + 1) if t0 > self._trace_end + TIME_TOLERANCE_S else sl
             self._trace_end = self.block_t0 + b.t[k1]
-            tau, Q, V = _knots(b, b.t[sl_rec], b.Q[sl_rec])
+            tau, Q, V = _knots(b, b.t[sl_rec], b.Q[sl_rec], after=None if sl_rec is not sl else b.t[k0])
             self.trace_t.append(self.block_t0 + tau)
             self.trace_q.append(Q)
             self.trace_v.append(V)
@@ -756,18 +758,23 @@ class ArmRunner:
 BRAKE_KNOT_S = 0.01
 
 
-def _knots(block, tau, Q):
+def _knots(block, tau, Q, after=None):
     """The executed motion of ``block`` at block times ``tau`` (the
     waypoints reached) as Hermite knots ``(tau, Q, V)``: positions and speeds
     of the commanded motion, plus knots every :data:`BRAKE_KNOT_S` s where
-    the motion brakes; without a motion (a block of one waypoint), at rest."""
+    the motion brakes after ``after`` (the block time of the knot recorded
+    last; default ``tau[0]``): a brake begun between that knot and
+    ``tau[0]`` is no cubic through the two; without a motion (a block of
+    one waypoint), at rest."""
     m = block.motion
     if m is None or len(tau) == 0:
         return tau, Q, np.zeros_like(Q)
-    extra = [np.arange(max(p.t_b, tau[0]), min(p.end, tau[-1]), BRAKE_KNOT_S)
-             for p in m.pieces if p.c is not None and p.t_b < tau[-1] and p.end > tau[0]]
+    lo = tau[0] if after is None else after
+    extra = [np.arange(max(p.t_b, lo), min(p.end, tau[-1]), BRAKE_KNOT_S)
+             for p in m.pieces if p.c is not None and p.t_b < tau[-1] and p.end > lo]
     if extra:
-        tau = np.union1d(tau, np.concatenate(extra))
+        extra = np.concatenate(extra)
+        tau = np.union1d(tau, extra if after is None else extra[extra > after + TIME_TOLERANCE_S])
     q, v = m.eval(tau)[:2]
     return tau, q, v
 
