@@ -57,7 +57,7 @@ from ambots.config import ArmInstance, pose_matrix
 from ambots.errors import KinematicsError, UnreachableError
 
 __all__ = ["ArmBody", "segment_distance", "capsule_distances", "clearance_between", "box_clearance", "box_clear",
-           "bed_box",
+           "bed_box", "BED_SKIP",
            "bed_clearance", "part_clearance", "SeamZone", "seam_zone", "seam_zone_mm", "seam_zones_mm",
            "CollisionCheck"]
 
@@ -369,7 +369,11 @@ def box_clear(A, B, radii, box_min, box_max, margin, mask=None):
     return ok
 
 
-def bed_clearance(body, Q, cell, skip=("base_link",)):
+#: links the bed check leaves out: those mounted at or below the table
+BED_SKIP = ("base_link",)
+
+
+def bed_clearance(body, Q, cell, skip=BED_SKIP):
     """Clearance (N,), m, of an arm at joint vectors ``Q`` (N, n) to the print
     bed: the slab ``cell.bed.size`` (x, y, thickness) below the bed's top
     surface.  ``skip``: links not checked (those mounted at or below the

@@ -182,12 +182,12 @@ class JointMoves:
         part printed so far) on the joint move from ``a_mm`` (None: home) to
         ``b_mm`` (``park``: an A7, :meth:`joints`); None if either end is out
         of reach."""
-        from ambots.collision import bed_box, box_clearance
+        from ambots.collision import BED_SKIP, bed_box, box_clearance
         caps = self._capsules(name, a_mm, b_mm, park)
         if caps is None:
             return None
         A, B, r, body = caps
-        bed = box_clearance(A, B, r, *bed_box(self.cell), body.mask(("base_link",)))
+        bed = box_clearance(A, B, r, *bed_box(self.cell), body.mask(BED_SKIP))
         part = box_clearance(A, B, r, np.asarray(box_lo_mm) / 1000.0, np.asarray(box_hi_mm) / 1000.0)
         return float(min(bed.min(), part.min())) * 1000.0
 
@@ -196,13 +196,13 @@ class JointMoves:
         either end is out of reach), answered from a bound where it can
         (:func:`ambots.collision.box_clear`): the schedule asks for every
         chunk it weighs after a park."""
-        from ambots.collision import bed_box, box_clear
+        from ambots.collision import BED_SKIP, bed_box, box_clear
         caps = self._capsules(name, a_mm, b_mm, park)
         if caps is None:
             return False
         A, B, r, body = caps
         margin = float(margin_mm) / 1000.0
-        return bool(box_clear(A, B, r, *bed_box(self.cell), margin, body.mask(("base_link",))).all()
+        return bool(box_clear(A, B, r, *bed_box(self.cell), margin, body.mask(BED_SKIP)).all()
                     and box_clear(A, B, r, np.asarray(box_lo_mm) / 1000.0, np.asarray(box_hi_mm) / 1000.0,
                                   margin).all())
 
@@ -213,19 +213,21 @@ def _heights(z_low, park_z):
     return sorted({z for z in (z_low, z_low + 20.0, z_low + 40.0, z_low + 80.0) if z < park_z} | {park_z})
 
 
+def _lowest(z_low, park_z, clear):
+    """The first height of :func:`_heights` for which ``clear(z)``, else the highest."""
+    cands = _heights(z_low, park_z)
+    return next((z for z in cands if clear(z)), cands[-1])
+
+
 def safe_height(moves, name, start, xy, z_low, park_z, box):
     """The lowest height (mm) of ``z_low``, ``z_low`` + 20, + 40, + 80 and
     the park height at which the joint move between ``start`` (bed mm;
     None: home) and (``xy``, height) keeps :data:`CLEAR_MM` from the bed and
     the printed ``box`` ((lo, hi) bed mm); the highest if none does.
     ``moves``: :class:`JointMoves`, or None (no check: ``z_low``)."""
-    cands = _heights(z_low, park_z)
     if moves is None:
-        return cands[0]
-    for z in cands:
-        if moves.clear(name, start, (xy[0], xy[1], z), *box, CLEAR_MM):
-            return z
-    return cands[-1]
+        return _heights(z_low, park_z)[0]
+    return _lowest(z_low, park_z, lambda z: moves.clear(name, start, (xy[0], xy[1], z), *box, CLEAR_MM))
 
 
 def lift_height(moves, name, p, park, z_low, box):
@@ -242,8 +244,4 @@ def lift_height(moves, name, p, park, z_low, box):
     park_z = float(park[2])
     if moves is None or moves.redundant(name):
         return park_z if moves is not None else min(z_low, park_z)
-    cands = _heights(z_low, park_z)
-    for z in cands:
-        if moves.clear(name, (p[0], p[1], z), park, *box, CLEAR_MM, park=True):
-            return z
-    return cands[-1]
+    return _lowest(z_low, park_z, lambda z: moves.clear(name, (p[0], p[1], z), park, *box, CLEAR_MM, park=True))
