@@ -244,12 +244,13 @@ class DoesNotFit(MeshError):
         self.scale_to_fit = scale_to_fit
 
 
-def prepare_model(path, cell, scale=1.0):
+def prepare_model(path, cell, scale=1.0, crossings=True):
     """Step 1: read, repair and check the model; centre it on the bed (bed
     frame, mm) and refuse it if it does not fit the bed
-    (:class:`DoesNotFit`, with advice)."""
+    (:class:`DoesNotFit`, with advice).  ``crossings`` False: without the
+    search for a surface crossing itself (:func:`ambots.mesh.load_model`)."""
     from ambots.mesh import check_fits, load_model, place_on_bed
-    mesh = place_on_bed(load_model(path, scale=scale))
+    mesh = place_on_bed(load_model(path, scale=scale, crossings=crossings))
     try:
         check_fits(mesh, m_to_mm(cell.bed.size[:2]), m_to_mm(cell.bed.max_height))
     except MeshError as exc:
@@ -495,12 +496,61 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
     each arm's share sized by its busy time in the first (:data:`REBALANCE_SHARE`).
     Without it the given arms print together (``job.forced``).  The arms
     alone are planned in a worker process beside the plan together
-    (:mod:`ambots.parallel`; ``AMBOTS_JOBS=1``: one after the other, here)."""
+    (:mod:`ambots.parallel`; ``AMBOTS_JOBS=1``: one after the other, here).
+
+    The model's search for a surface crossing itself (0.35 s of a
+    300,000-triangle model, on one core while the other waited) runs in a
+    worker process too, beside the planning: the plans are made on the
+    model as read and repaired otherwise; if the surface crosses itself,
+    the model is loaded again with the search (the crossing repaired, or
+    refused) and planned again.  xacro builds the arms' URDFs aside while
+    the model is read (:func:`ambots.model.prefetch_urdfs`)."""
+    from ambots.mesh import crosses_itself
+    from ambots.parallel import Forked, workers
     if choose is None:                   # sequential mode is the original's way: the arms asked for, in turn
         choose = arms is None and mode == "concurrent"
     arms = list(cell.arms if arms is None else arms)
+    args = (model_path, cell, arms, slicer, mode, seam, settings, choose)
+    if workers() < 2:
+        return _plan_job(prepare_model(model_path, cell, scale), *args)
+    from ambots.model import prefetch_urdfs
+    keep_urdfs, drop_urdfs = prefetch_urdfs([a.profile for a in cell.arms])     # xacro aside, while reading
+    try:
+        mesh = prepare_model(model_path, cell, scale, crossings=False)
+    except Exception:                    # refused: the error the search would have given first, if any
+        mesh = None
+    except BaseException:
+        drop_urdfs()
+        raise
+    try:
+        keep_urdfs()
+    except Exception:                    # xacro's error: raised where the kinematics are built, as before
+        pass
+    if mesh is None:
+        return _plan_job(prepare_model(model_path, cell, scale), *args)
+    before = hash(mesh)
+    check = Forked(lambda: crosses_itself(mesh))
+    try:
+        job = _plan_job(mesh, *args)
+    except Exception:
+        if check.result():               # the crossing may be why: as without the search aside
+            return _plan_job(prepare_model(model_path, cell, scale), *args)
+        raise
+    except BaseException:
+        check.cancel()
+        raise
+    if check.result():
+        return _plan_job(prepare_model(model_path, cell, scale), *args)
+    if hash(mesh) == before:             # found clean, as the search in the load marks it
+        from ambots.mesh import UNCROSSED_KEY
+        mesh.metadata[UNCROSSED_KEY] = before
+    return job
+
+
+def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose):
+    """:func:`run_job` on the prepared model ``mesh``."""
     job = Job(model_path, cell, arms, slicer, mode, seam, forced=not choose, settings=settings)
-    job.mesh = prepare_model(model_path, cell, scale)
+    job.mesh = mesh
     idle = [a for a in cell.arms if a.name not in {b.name for b in arms}]
     plans = []
     reach = {}                           # the reach checks of this mesh, shared by the plans

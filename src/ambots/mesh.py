@@ -44,7 +44,7 @@ REPORT_KEY = "ambots_repair"
 
 # ---------------------------------------------------------------- loading
 
-def load_model(path, scale=1.0, max_triangles=DEFAULT_MAX_TRIANGLES, repair=True):
+def load_model(path, scale=1.0, max_triangles=DEFAULT_MAX_TRIANGLES, repair=True, crossings=True):
     """Read a model file and return a closed, consistently oriented mesh.
 
     Parameters
@@ -60,6 +60,11 @@ def load_model(path, scale=1.0, max_triangles=DEFAULT_MAX_TRIANGLES, repair=True
       small against the model (:mod:`ambots.repair`), fix
       winding and normals, and merge overlapping shells.  With ``False``
       the mesh is only welded (shared vertices merged) and validated.
+    crossings : bool
+      With ``False`` the search for a surface crossing itself (its repair,
+      its refusal) is left out: the caller runs :func:`crosses_itself` on
+      the mesh aside and loads the file again with it when that finds a
+      crossing (the job does: :func:`ambots.job.run_job`).
 
     Returns
     -------
@@ -99,8 +104,8 @@ def load_model(path, scale=1.0, max_triangles=DEFAULT_MAX_TRIANGLES, repair=True
     # a flat mesh must end up as a message, not as a RuntimeWarning
     with np.errstate(divide="ignore", invalid="ignore"):
         if repair:
-            mesh = repair_mesh(mesh)
-        validate_mesh(mesh)
+            mesh = repair_mesh(mesh, crossings)
+        validate_mesh(mesh, crossings=crossings)
     for note in mesh.metadata[REPAIRS_KEY]:
         log.info("%s: repaired: %s", name, note)
     return mesh
@@ -191,7 +196,7 @@ def check_numbers(mesh, name, max_triangles=DEFAULT_MAX_TRIANGLES, scale=1.0):
 
 # ----------------------------------------------------------------- repair
 
-def repair_mesh(mesh):
+def repair_mesh(mesh, crossings=True):
     """Repair what can be repaired and return the mesh (``mesh`` itself or
     a new one).
 
@@ -203,7 +208,8 @@ def repair_mesh(mesh):
     each other (a self-intersection left by exporting several parts as one
     mesh); repair a surface that crosses itself when the defect is small
     (:func:`ambots.selfcross.repair_crossings`: the rule, and the refusal with
-    the figure that failed).  Each change is appended to ``mesh.metadata['ambots_repairs']``;
+    the figure that failed; not with ``crossings`` False: :func:`load_model`).
+    Each change is appended to ``mesh.metadata['ambots_repairs']``;
     ``mesh.metadata['ambots_repair']`` is the
     :class:`ambots.repair.RepairReport`.
     """
@@ -239,7 +245,8 @@ def repair_mesh(mesh):
     if n_flip:
         notes.append("flipped %d triangles to make the normals point outward" % n_flip)
     mesh = _merge_overlapping_shells(mesh)
-    mesh = _repair_crossings(mesh, report)
+    if crossings:
+        mesh = _repair_crossings(mesh, report)
     report.faces_after = len(mesh.faces)
     report.open_edges_after = open_edge_count(mesh)
     return mesh
@@ -292,6 +299,32 @@ def weld(mesh):
     mesh.update_vertices(mask=np.flatnonzero(referenced)[first[order]], inverse=inverse)
 
 
+def _crossing_checked(mesh):
+    """Whether :func:`_repair_crossings` looks for crossings in ``mesh``: a
+    closed, consistently wound surface of at most
+    :data:`SELF_INTERSECTION_MAX_TRIANGLES` triangles (any other is refused
+    by :func:`validate_mesh`, or logged as not checked)."""
+    return not (len(mesh.faces) > SELF_INTERSECTION_MAX_TRIANGLES or open_edge_count(mesh)
+                or nonmanifold_edge_count(mesh) or not mesh.is_winding_consistent)
+
+
+def crosses_itself(mesh):
+    """Whether the surface of ``mesh`` (as :func:`load_model` returns it with
+    ``crossings`` False) crosses itself where :func:`load_model` would have
+    looked (:func:`_repair_crossings`): then loading with the search
+    repairs it or refuses it.  A mesh found clean is marked as
+    :func:`_repair_crossings` marks it (unless it was pickled to get here)."""
+    from ambots.selfcross import crossing_pairs
+    if not _crossing_checked(mesh):
+        if len(mesh.faces) > SELF_INTERSECTION_MAX_TRIANGLES:
+            check_self_intersection(mesh)          # logs that it is not checked
+        return False
+    if len(crossing_pairs(mesh)[0]):
+        return True
+    mesh.metadata[UNCROSSED_KEY] = hash(mesh)
+    return False
+
+
 def _repair_crossings(mesh, report):
     """Repair a closed surface that crosses itself when the defect is small
     (:func:`ambots.selfcross.repair_crossings`: the rule, and the refusal with
@@ -299,8 +332,7 @@ def _repair_crossings(mesh, report):
     not cross itself, or is not closed: :func:`validate_mesh` refuses it)."""
     from ambots.selfcross import repair_crossings
     from ambots.selfcross import crossing_pairs
-    if (len(mesh.faces) > SELF_INTERSECTION_MAX_TRIANGLES or open_edge_count(mesh)
-            or nonmanifold_edge_count(mesh) or not mesh.is_winding_consistent):
+    if not _crossing_checked(mesh):
         return mesh
     pairs, points = crossing_pairs(mesh)
     if not len(pairs):
@@ -415,13 +447,14 @@ def _edge_counts(mesh):
     return counts
 
 
-def validate_mesh(mesh, name=None):
+def validate_mesh(mesh, name=None, crossings=True):
     """Refuse a mesh that is not a closed, oriented volume.
 
     Checks, in order: open edges, non-manifold edges, inconsistent winding,
     zero volume, acceptance by manifold3d, no self-intersection
-    (:func:`check_self_intersection`).  ``name`` defaults to the file
-    name recorded by :func:`load_model`.
+    (:func:`check_self_intersection`; not with ``crossings`` False:
+    :func:`load_model`).  ``name`` defaults to the file name recorded by
+    :func:`load_model`.
     """
     name = name or source_name(mesh)
     n_open = open_edge_count(mesh)
@@ -443,7 +476,8 @@ def validate_mesh(mesh, name=None):
         raise MeshError("%s: the normals point inward (negative volume %.3f mm^3)"
                         % (name, volume))
     to_manifold(mesh, name)  # raises when manifold3d does not accept it
-    check_self_intersection(mesh, name)
+    if crossings:
+        check_self_intersection(mesh, name)
 
 
 #: meshes with more triangles are not checked for self-intersections

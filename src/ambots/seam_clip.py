@@ -108,13 +108,14 @@ def _joined(paths, n, off, link_max, walls=None):
     """Consecutive open paths joined where the first ends and the next
     starts (or ends: it is then reversed) on the plane (n, off), less than
     ``link_max`` apart and not across one of ``walls``."""
-    from ambots.slicer import crossing
+    from ambots.slicer import crossing, wall_boxes
+    boxes = None if walls is None else wall_boxes(walls)
 
     def on(p):
         return abs(float(p @ n) - off) <= 1e-7
 
     def clear(a, b):
-        return walls is None or not crossing(a[None], b[None], walls)[0]
+        return walls is None or not crossing(a[None], b[None], walls, boxes)[0]
 
     out = [paths[0]]
     for path in paths[1:]:
@@ -141,24 +142,24 @@ def _pieces(path, s, inside):
         k = int(np.argmin(inside))
         P, s, inside = (np.concatenate([P[k:], P[:k], P[k:k + 1]]), np.concatenate([s[k:], s[:k], s[k:k + 1]]),
                         np.concatenate([inside[k:], inside[:k], inside[k:k + 1]]))
-    out, run = [], [P[0]] if inside[0] else None
-    for k in range(len(P) - 1):
-        a, b = inside[k], inside[k + 1]
-        if a and b:
-            run.append(P[k + 1])
-        elif a != b:
-            x = P[k] + (P[k + 1] - P[k]) * (s[k] / (s[k] - s[k + 1]))
-            if a:
-                run.append(x)
-                out.append(run)
-                run = None
-            else:
-                run = [x, P[k + 1]]
-    if run is not None:
-        out.append(run)
+    # run i: the points inside from firsts[i] to lasts[i], with the point
+    # where the path entered before them and where it left after them
+    step = np.diff(inside.astype(np.int8))
+    enter, leave = np.flatnonzero(step > 0), np.flatnonzero(step < 0)
+    k = np.concatenate([enter, leave])
+    X = P[k] + (P[k + 1] - P[k]) * (s[k] / (s[k] - s[k + 1]))[:, None]
+    Xin, Xout = X[:len(enter)], X[len(enter):]
+    firsts = np.concatenate([[0], enter + 1]) if inside[0] else enter + 1
+    lasts = np.concatenate([leave, [len(P) - 1]]) if inside[-1] else leave
+    lead = 1 if inside[0] else 0
     pieces = []
-    for run in out:
-        q = np.array(run)
+    for i, (a, b) in enumerate(zip(firsts.tolist(), lasts.tolist())):
+        parts = [P[a:b + 1]]
+        if i >= lead:
+            parts.insert(0, Xin[i - lead:i - lead + 1])
+        if i < len(leave):
+            parts.append(Xout[i:i + 1])
+        q = np.concatenate(parts) if len(parts) > 1 else parts[0].copy()
         if len(q) > 1 and np.hypot(*(q[1:] - q[:-1]).T).sum() > 5e-4:
             pieces.append(q)
     return pieces

@@ -592,16 +592,19 @@ def loop_segments(paths):
     return out
 
 
-def crossing(A, B, walls):
+def crossing(A, B, walls, boxes=None):
     """Which links A[i] -> B[i] ((m, 2) each, mm) cross one of ``walls``
     ((p, 2, 2) segments): a link that crosses no perimeter loop of its
-    island stays inside the innermost one, i.e. inside the part."""
+    island stays inside the innermost one, i.e. inside the part.
+    ``boxes``: the walls' (lo, hi) corners (:func:`wall_boxes`), if the
+    caller asks about the same walls again and again.  The turn test runs
+    on the pairs whose boxes overlap only."""
     m = len(A)
     hit = np.zeros(m, dtype=bool)
     if not m or not len(walls):
         return hit
     lo, hi = np.minimum(A, B), np.maximum(A, B)
-    wlo, whi = walls.min(axis=1), walls.max(axis=1)
+    wlo, whi = wall_boxes(walls) if boxes is None else boxes
     C, D = walls[:, 0], walls[:, 1]
 
     def side(P, Q, R):             # sign of the turn P -> Q -> R
@@ -609,13 +612,19 @@ def crossing(A, B, walls):
                        - (Q[..., 1] - P[..., 1]) * (R[..., 0] - P[..., 0]))
 
     for i in range(0, m, 256):     # bounded memory: 256 links x p walls at a time
-        a, b = A[i:i + 256, None], B[i:i + 256, None]
         near = ((lo[i:i + 256, None] <= whi[None]) & (wlo[None] <= hi[i:i + 256, None])).all(axis=2)
-        if not near.any():
+        r, c = np.nonzero(near)
+        if not len(r):
             continue
-        proper = (side(a, b, C[None]) * side(a, b, D[None]) < 0) & (side(C[None], D[None], a) * side(C[None], D[None], b) < 0)
-        hit[i:i + 256] = (near & proper).any(axis=1)
+        a, b, cc, dd = A[i + r], B[i + r], C[c], D[c]
+        proper = (side(a, b, cc) * side(a, b, dd) < 0) & (side(cc, dd, a) * side(cc, dd, b) < 0)
+        hit[i + r[proper]] = True
     return hit
+
+
+def wall_boxes(walls):
+    """The corners (lo, hi), (p, 2) each, of the boxes of ``walls`` ((p, 2, 2) segments)."""
+    return walls.min(axis=1), walls.max(axis=1)
 
 
 def chain_lanes(hatched, link_max, walls=None):

@@ -562,6 +562,17 @@ def test_the_job_names_the_model_file(tmp_path, cell, name, content, why):
         prepare_model(str(path), cell)
 
 
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_the_job_refuses_a_large_crossing_whether_the_search_runs_aside_or_not(tmp_path, cell, monkeypatch, jobs):
+    """run_job with the search for a crossing beside the planning (two
+    processes) gives the load's refusal, as with one."""
+    monkeypatch.setenv("AMBOTS_JOBS", jobs)
+    path = tmp_path / "spike.stl"
+    path.write_bytes(_spike())
+    with pytest.raises(MeshError, match=r"spike\.stl: the surface crosses itself: 8 pairs"):
+        run_job(str(path), cell)
+
+
 # =============================================================================
 # 5. Cell and arm configs
 # =============================================================================

@@ -170,3 +170,24 @@ def test_a_job_planned_with_workers_is_the_job_planned_in_one_process(jobs, tmp_
     assert len(two.chosen.arms) == 1 and two.sliced == one.sliced
     name = two.chosen.arms[0]
     assert type(two.sliced[name]) is str and one.sliced[name].layers is not None
+
+
+def test_the_urdfs_made_aside_are_those_xacro_makes_here(jobs, monkeypatch):
+    """:func:`ambots.model.prefetch_urdfs`: xacro runs in a worker for the
+    profiles not kept yet, and what comes back is kept: the texts xacro
+    gives in this process, and xacro is not run again for them."""
+    import xacro
+
+    from ambots import model
+    jobs(2)
+    profiles = [a.profile for a in load_cell(default_cell_path()).arms]
+    monkeypatch.setattr(model, "_URDF", {})
+    want = {model._urdf_key(p): model.arm_urdf(p) for p in profiles}      # here
+    monkeypatch.setattr(model, "_URDF", {})
+    keep, _ = model.prefetch_urdfs(profiles)
+    keep()
+    assert model._URDF == want and len(want) == 2            # the Kinova's and the UR10's
+    calls = []
+    monkeypatch.setattr(xacro, "process_file", lambda *a, **k: calls.append(a))
+    assert [model.arm_urdf(p) for p in profiles] == [want[model._urdf_key(p)] for p in profiles]
+    assert not calls

@@ -405,6 +405,26 @@ def test_a_small_pyramid_poking_through_a_wall_is_repaired(tmp_path, h):
                for n in out.metadata["ambots_repairs"])
 
 
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_the_job_plans_on_the_repaired_mesh_whether_the_search_runs_aside_or_not(tmp_path, monkeypatch, jobs):
+    """With two processes the job searches for a crossing in a worker
+    beside the planning (:func:`ambots.job.run_job`), with one in the load:
+    either way the parts are cut from the repaired mesh (the pyramid gone:
+    the slotted cube's volume by its formula), and the repair is noted."""
+    from ambots.config import default_cell_path, load_cell
+    from ambots.job import run_job
+    from ambots.selfcross import self_intersections
+    monkeypatch.setenv("AMBOTS_JOBS", jobs)
+    mesh, _ = slotted(1.5)
+    path = save(tmp_path, "poke.stl", mesh.vertices, mesh.faces)
+    cell = load_cell(default_cell_path())
+    job = run_job(path, cell, [cell.arm("ur10")])
+    assert self_intersections(job.mesh)[0] == 0 and report(job.mesh).crossing_pairs > 0
+    assert any(n.startswith("surface crossed itself at") for n in job.mesh.metadata["ambots_repairs"])
+    assert job.mesh.volume == pytest.approx(SLOT_CUBE ** 3 - SLOT_CUBE ** 2 / 2, rel=1e-6)
+    assert sum(p.volume for p in job.parts) == pytest.approx(job.mesh.volume, rel=1e-6)
+
+
 def test_valid_models_cost_one_crossing_check_and_are_not_changed(tmp_path, monkeypatch):
     import ambots.selfcross
     from shapes import MODELS
