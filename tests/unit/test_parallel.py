@@ -103,6 +103,8 @@ def test_a_working_child_counts_against_the_workers(jobs):
     f = Forked(lambda: os.read(r, 1))                 # works until told
     try:
         assert {p for p in fork_map(lambda x: os.getpid(), range(4))} == {os.getpid()}
+        # a map told not to share (the job's last timing: its background worker is about to end) forks
+        assert len({p for p in fork_map(lambda x: (time.sleep(0.05), os.getpid())[1], range(4), share=False)}) == 2
     finally:
         os.write(w, b"x")
     assert f.result() == b"x"
