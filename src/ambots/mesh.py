@@ -315,7 +315,9 @@ def crosses_itself(mesh):
     ``crossings`` False) crosses itself where :func:`load_model` would have
     looked (:func:`_repair_crossings`): then loading with the search
     repairs it or refuses it.  A mesh found clean is marked as
-    :func:`_repair_crossings` marks it (unless it was pickled to get here)."""
+    :func:`_repair_crossings` marks it (in this process: a caller that
+    runs this in a worker marks its own copy, as :func:`ambots.job.run_job`
+    does)."""
     from ambots.selfcross import crossing_pairs
     if not _crossing_checked(mesh):
         if len(mesh.faces) > SELF_INTERSECTION_MAX_TRIANGLES:
