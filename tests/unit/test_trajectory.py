@@ -77,9 +77,11 @@ def test_a_square_is_timed_within_the_limits_and_stays_on_its_lines(cell, name):
     pl = planner(cell, name)
     b = pl.plan_moves(item.segments, arm.profile.home)
     vmax, amax = joint_limits(arm.profile)
-    # the same waypoints, never faster than planned
+    # the same waypoints, never faster than planned (to 1e-5 of a duration: the two runs' waypoints
+    # may differ in the last bits, and the law's stretch decides limit by limit whether a segment is
+    # over; one clean-clone run saw 1.5e-6 s on a 0.58 s segment)
     np.testing.assert_allclose(b.Q, plain.Q, atol=1e-12)
-    assert np.all(np.diff(b.t) >= np.diff(plain.t) - 1e-12)
+    assert np.all(np.diff(b.t) >= np.diff(plain.t) * (1.0 - 1e-5) - 1e-12)
     sp = b.motion.pieces[0].spline
     # the spline passes through every waypoint at its time, at rest at both ends
     q, v, a, e, de = b.motion.eval(b.t)
