@@ -719,7 +719,7 @@ class ArmRunner:
             t0 = self.block_t0 + b.t[k0]
             sl_rec = slice(k0, k1 + 1) if t0 > self._trace_end + TIME_TOLERANCE_S else sl
             self._trace_end = self.block_t0 + b.t[k1]
-            tau, Q, V = _knots(b, b.t[sl_rec], b.Q[sl_rec], after=None if sl_rec is not sl else b.t[k0])
+            tau, Q, V = _knots(b, b.t[sl_rec], b.Q[sl_rec], after=b.t[k0])
             self.trace_t.append(self.block_t0 + tau)
             self.trace_q.append(Q)
             self.trace_v.append(V)
