@@ -96,10 +96,11 @@ class Job:
     def summary(self):
         """Per-arm figures of the programs (``python -m ambots info`` keys)."""
         from ambots.gcode import summarize
+        from ambots.mesh import signed_volume
         # the programs' figures, from the one parse that timed them (parsed here if not timed);
         # summed for the chosen plan only
         out = {"model": self.model_path, "cell": self.cell.name, "mode": self.mode, "slicer": self.slicer,
-               "model_volume_mm3": float(self.mesh.volume) if self.mesh is not None else None,
+               "model_volume_mm3": signed_volume(self.mesh) if self.mesh is not None else None,
                "one_arm_estimate_s": self.one_arm_estimate_s, "plan": self.plan_summary(), "arms": {}}
         events = self.events()
         out["overhang"] = self.overhang()

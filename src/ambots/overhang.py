@@ -31,9 +31,10 @@ slicer wrote it, with or without support), by the rule of issue
 
 Points are taken every ``step_mm`` along each extruding move (each sample
 stands for its stretch of the path); the distance to the layer below is
-the exact distance to its extrusion segments (a shapely STRtree
-``dwithin`` query), not to samples of them.  Millimetres throughout, the
-G-code frame.
+the exact distance to its extrusion segments, not to samples of them
+(:class:`_Below`: a k-d tree of points on the segments settles most
+samples, GEOS's distance to the segments the few it cannot).  Millimetres
+throughout, the G-code frame.
 """
 import math
 from typing import Dict, Iterable, List
@@ -42,7 +43,8 @@ import numpy as np
 
 from ambots.gcode import Segment
 
-__all__ = ["unsupported_extrusion", "layer_ranges", "DEFAULT_BEAD_WIDTH_MM", "DEFAULT_BRIDGE_MAX_MM"]
+__all__ = ["unsupported_extrusion", "layer_ranges", "DEFAULT_BEAD_WIDTH_MM", "DEFAULT_BRIDGE_MAX_MM",
+           "PARALLEL_MIN_MOVES"]
 
 #: one bead width: the reach of the rule (the slicers' default extrusion width)
 DEFAULT_BEAD_WIDTH_MM = 0.45
@@ -75,6 +77,56 @@ def _paths(events):
     if cur:
         paths.append(cur)
     return paths
+
+
+#: the layer below is sampled at most this far apart (mm) for :class:`_Below`'s
+#: k-d tree: finer settles more points by the tree, for a larger tree
+_TREE_STEP_MM = 0.1
+
+
+class _Below:
+    """The extrusion of one level, ``segs`` ((m, 2, 2) xy, mm), and which
+    points lie within ``reach`` (mm) of it (:meth:`near`), by the exact
+    distance to the segments.
+
+    A k-d tree of points on the segments, at most :data:`_TREE_STEP_MM`
+    apart and both ends of each, settles most points: one within ``reach``
+    of a tree point is within ``reach`` of that point's segment; one farther
+    than ``reach`` + step / 2 from every tree point is farther than
+    ``reach`` from every segment (each point of a segment lies within
+    step / 2 of a tree point).  The points in between (4 % of a 60 mm
+    sphere's samples) get GEOS's distance to the segments.  Measured on
+    that sphere's program (1.9 M samples, 300 layers): 1.7 s, against 9.4 s
+    for the union of the segments' buffers (a polygon with 4 segments a
+    quarter circle, so a little short of the exact distance: 538.7 mm
+    unsupported against 538.5 mm) and 3.7 s for GEOS's distance alone."""
+
+    def __init__(self, segs, reach):
+        from scipy.spatial import cKDTree
+        self.segs, self.reach = segs, float(reach)
+        a, b = segs[:, 0], segs[:, 1]
+        k = np.maximum(1, np.ceil(np.hypot(*(b - a).T) / _TREE_STEP_MM)).astype(int)
+        idx = np.repeat(np.arange(len(segs)), k + 1)
+        j = np.arange(len(idx)) - np.repeat(np.cumsum(k + 1) - (k + 1), k + 1)
+        pts = a[idx] + (b[idx] - a[idx]) * (j / k[idx])[:, None]
+        self.tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)
+        self._lines = None
+
+    def near(self, pts):
+        """(n,) bool: the points ``pts`` ((n, 2) xy) within ``reach`` of the segments."""
+        import shapely
+        if not len(pts):
+            return np.zeros(0, dtype=bool)
+        bound = self.reach + 0.5 * _TREE_STEP_MM
+        d, _ = self.tree.query(pts, k=1, distance_upper_bound=bound * (1.0 + 1e-9) + 1e-9)
+        out = d <= self.reach
+        unsure = ~out & np.isfinite(d)
+        if unsure.any():
+            if self._lines is None:
+                self._lines = shapely.multilinestrings(shapely.linestrings(self.segs))
+                shapely.prepare(self._lines)
+            out[unsure] = shapely.dwithin(self._lines, shapely.points(pts[unsure]), self.reach)
+        return out
 
 
 def _sample(path, step_mm):
@@ -142,8 +194,6 @@ def unsupported_extrusion(programs: Iterable, bead_width_mm=DEFAULT_BEAD_WIDTH_M
     with some, and the rule's figures ``bead_width_mm``, ``bridge_max_mm``,
     ``layer_height_mm`` (the nominal ``h``).
     """
-    import shapely
-
     if not bead_width_mm > 0 or not bridge_max_mm >= 0 or not step_mm > 0:
         raise ValueError("bead_width_mm and step_mm must be > 0 and bridge_max_mm >= 0")
     paths = [p for events in programs for p in _paths(events)]
@@ -160,11 +210,51 @@ def unsupported_extrusion(programs: Iterable, bead_width_mm=DEFAULT_BEAD_WIDTH_M
     for i, k in enumerate(level_of):
         by_level.setdefault(int(k), []).append(i)
     slab = np.ceil(heights / h - _Z_TOL / h).astype(int)          # the layer number reported
+    level = lambda k: [paths[i] for i in by_level[k]]
+    size = np.array([sum(len(p) for p in level(k)) for k in range(len(heights))])
+    rule = (h, bead_width_mm, bridge_max_mm, step_mm)
+    from ambots.parallel import fork_map, workers
+    n = workers() if size.sum() >= PARALLEL_MIN_MOVES else 1
+    # contiguous runs of levels of about equal numbers of moves, one a process
+    cuts = np.searchsorted(np.cumsum(size), size.sum() * np.arange(1, n) / n, side="right")
+    bounds = [int(c) for c in [0, *cuts, len(heights)]]
+    runs = [(a, b) for a, b in zip(bounds, bounds[1:]) if b > a]
     total = unsupported = bridged = 0.0
     lost_by_slab: Dict[int, float] = {}
-    carries = {}              #: level -> everything within one bead width of its extrusion
-    for k in range(len(heights)):
-        members = [paths[i] for i in by_level[k]]
+    for t, u, b, lost in fork_map(lambda r: _levels(level, heights, slab, r, rule), runs):
+        total, unsupported, bridged = total + t, unsupported + u, bridged + b
+        for n_, v in lost.items():
+            lost_by_slab[n_] = lost_by_slab.get(n_, 0.0) + v
+    first = int(slab.min())
+    per_layer = [{"layer": n - first + 1, "z_mm": round(float(heights[slab == n].max()), 4),
+                  "unsupported_mm": round(lost_by_slab[n], 3)} for n in sorted(lost_by_slab)]
+    result.update(extruded_mm=round(total, 3), unsupported_mm=round(unsupported, 3),
+                  unsupported_share=unsupported / total if total > 0 else 0.0,
+                  bridged_mm=round(bridged, 3), layers=len(np.unique(slab)), unsupported_layers=per_layer,
+                  layer_height_mm=h)
+    return result
+
+
+#: programs with at least this many extruding moves are measured by
+#: :func:`ambots.parallel.workers` processes, each a run of levels (the 60 mm
+#: sphere's program, 116,000 moves: 1.7 s in one process)
+PARALLEL_MIN_MOVES = 20000
+
+
+def _levels(level, heights, slab, run, rule):
+    """The levels ``run`` = (first, end) of :func:`unsupported_extrusion`:
+    (extruded, unsupported, bridged mm, {slab: unsupported mm}).  ``level(k)``:
+    the paths of level ``k``; ``rule``: (h, bead width, bridge max, step), mm.
+    The levels below ``first`` that its window reaches are read first."""
+    h, bead_width_mm, bridge_max_mm, step_mm = rule
+    lo, hi = run
+    total = unsupported = bridged = 0.0
+    lost_by_slab: Dict[int, float] = {}
+    below = lambda k: _Below(np.concatenate([np.asarray(p, float)[:, :, :2] for p in level(k)]), bead_width_mm)
+    carries = {j: below(j) for j in range(lo)      # level -> its extrusion (:class:`_Below`)
+               if heights[j] >= heights[lo] - 1.75 * h - _Z_TOL}
+    for k in range(lo, hi):
+        members = level(k)
         samples = [_sample(p, step_mm) for p in members]
         for j in [j for j in carries if heights[j] < heights[k] - 1.75 * h - _Z_TOL]:
             del carries[j]                  # below every later window
@@ -177,8 +267,8 @@ def unsupported_extrusion(programs: Iterable, bead_width_mm=DEFAULT_BEAD_WIDTH_M
             pts = np.concatenate([s for s, _ in samples])
             w = np.concatenate([w for _, w in samples])
             hit = np.zeros(len(pts), dtype=bool)
-            for region in under:
-                hit[~hit] = shapely.contains_xy(region, pts[~hit, 0], pts[~hit, 1])
+            for r in under:
+                hit[~hit] = r.near(pts[~hit])
             ok = _bridged(hit, w, pid, bridge_max_mm)
             total += float(w.sum())
             lost = float(w[~ok].sum())
@@ -186,18 +276,9 @@ def unsupported_extrusion(programs: Iterable, bead_width_mm=DEFAULT_BEAD_WIDTH_M
             if lost > 0:
                 lost_by_slab[int(slab[k])] = lost_by_slab.get(int(slab[k]), 0.0) + lost
             unsupported += lost
-        segs = np.concatenate([np.asarray(p, float)[:, :, :2] for p in members])
-        region = shapely.buffer(shapely.multilinestrings(shapely.linestrings(segs)), bead_width_mm, quad_segs=4)
-        shapely.prepare(region)
-        carries[k] = region
-    first = int(slab.min())
-    per_layer = [{"layer": n - first + 1, "z_mm": round(float(heights[slab == n].max()), 4),
-                  "unsupported_mm": round(lost_by_slab[n], 3)} for n in sorted(lost_by_slab)]
-    result.update(extruded_mm=round(total, 3), unsupported_mm=round(unsupported, 3),
-                  unsupported_share=unsupported / total if total > 0 else 0.0,
-                  bridged_mm=round(bridged, 3), layers=len(np.unique(slab)), unsupported_layers=per_layer,
-                  layer_height_mm=h)
-    return result
+        if k + 1 < hi:
+            carries[k] = below(k)
+    return total, unsupported, bridged, lost_by_slab
 
 
 def _chained(members, samples):

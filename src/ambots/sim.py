@@ -256,7 +256,8 @@ def report(result, motion, job=None, model=None, cell=None, mode=None, slicer=No
             "cell": cell.name if cell is not None else (job.cell.name if job else None),
             "mode": mode if mode is not None else (job.mode if job else None),
             "slicer": slicer if slicer is not None else (job.slicer if job else None)}
-    model_mm3 = float(job.mesh.volume) if job is not None and job.mesh is not None else None
+    from ambots.mesh import signed_volume
+    model_mm3 = signed_volume(job.mesh) if job is not None and job.mesh is not None else None
     extra = {"plan": job.plan_summary()} if job is not None and getattr(job, "candidates", None) else {}
     if job is not None and getattr(job, "programs", None):
         extra["overhang"] = job.overhang()

@@ -71,6 +71,53 @@ def test_a_bead_beside_the_one_below_is_supported_within_one_bead_width():
     assert far["unsupported_mm"] == pytest.approx(20.0, abs=1e-6)
 
 
+@pytest.mark.parametrize("off", [-0.005, 0.005])
+def test_the_distance_to_the_layer_below_is_exact_along_a_line_and_past_its_end(off):
+    """Support within one bead width by the exact distance to the bead below,
+    5 micrometres either side of it: beside a line at 30 degrees
+    (between the points the measure samples on it) and past its end, where
+    the reach is a half circle (a polygon of it falls short)."""
+    c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
+    base = [(0, 0), (20 * c, 20 * s)]
+    d = W + off
+    beside = [(-d * s + 2 * c, d * c + 2 * s), (-d * s + 18 * c, d * c + 18 * s)]     # 16 mm, parallel
+    # past the end, 11.25 degrees off the line's axis (half-way between two corners of a
+    # 16-gon): 0.2 mm across that direction, centred on it
+    u, v = math.cos(math.radians(41.25)), math.sin(math.radians(41.25))
+    past = [(20 * c + d * u - 0.1 * v, 20 * s + d * v + 0.1 * u), (20 * c + d * u + 0.1 * v, 20 * s + d * v - 0.1 * u)]
+    for path, length in ((beside, 16.0), (past, 0.2)):
+        r = measure(gcode((0.2, [base]), (0.4, [path])))
+        assert r["unsupported_mm"] == (0.0 if off < 0 else pytest.approx(length, abs=0.005))
+
+
+def test_a_long_program_measured_by_several_processes_gives_the_one_process_figures(monkeypatch):
+    """Above :data:`PARALLEL_MIN_MOVES` moves the levels are shared among
+    worker processes, each a run of levels that reads the levels below its
+    first one: a staircase whose every line overhangs the one below by
+    3 mm (3 - W in mid-air a layer), with a lowered support layer on the way,
+    measures the same with 1, 2 and 3 processes, and what geometry says."""
+    import ambots.overhang as overhang
+    from ambots.parallel import JOBS_ENV
+    layers = []
+    for k in range(1, 31):
+        z = round(0.2 * k, 3)
+        layers.append((z, [[(0, 0), (10 + 3 * k, 0)], [(0, 5), (30, 5)]]))
+        if k == 14:                         # a layer of its own 0.1 mm lower, as a support's top
+            layers.append((round(z + 0.1, 3), [[(0, 5), (30, 5)]]))
+    text = gcode(*sorted(layers, key=lambda l: l[0]))
+    monkeypatch.setattr(overhang, "PARALLEL_MIN_MOVES", 0)
+    got = []
+    for jobs in ("1", "2", "3"):
+        monkeypatch.setenv(JOBS_ENV, jobs)
+        got.append(measure(text, layer_height_mm=0.2))
+    assert got[0]["unsupported_mm"] == pytest.approx(29 * (3 - W), abs=29 * 0.1)     # samples 0.2 mm apart
+    assert [l["layer"] for l in got[0]["unsupported_layers"]] == list(range(2, 31))
+    for r in got[1:]:
+        assert r["unsupported_layers"] == got[0]["unsupported_layers"]
+        for key in ("extruded_mm", "unsupported_mm", "bridged_mm", "unsupported_share"):
+            assert r[key] == pytest.approx(got[0][key], rel=1e-12, abs=1e-9)
+
+
 def test_a_bead_may_rest_on_another_programs_bead():
     """A job's programs are measured together: one arm prints on the other's layer."""
     first = gcode((0.2, [[(0, 0), (20, 0)]]))
