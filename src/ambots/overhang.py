@@ -80,8 +80,9 @@ def _paths(events):
 
 
 #: the layer below is sampled at most this far apart (mm) for :class:`_Below`'s
-#: k-d tree: finer settles more points by the tree, for a larger tree
-_TREE_STEP_MM = 0.1
+#: k-d tree: finer settles more points by the tree, for a larger tree (on the
+#: 60 mm sphere's program, one process: 0.1 mm 1.6 s, 0.2 mm 1.45 s, 0.3 mm 1.55 s)
+_TREE_STEP_MM = 0.2
 
 
 class _Below:
@@ -94,9 +95,9 @@ class _Below:
     of a tree point is within ``reach`` of that point's segment; one farther
     than ``reach`` + step / 2 from every tree point is farther than
     ``reach`` from every segment (each point of a segment lies within
-    step / 2 of a tree point).  The points in between (4 % of a 60 mm
+    step / 2 of a tree point).  The points in between (7 % of a 60 mm
     sphere's samples) get GEOS's distance to the segments.  Measured on
-    that sphere's program (1.9 M samples, 300 layers): 1.7 s, against 9.4 s
+    that sphere's program (1.9 M samples, 300 layers): 1.45 s, against 9.4 s
     for the union of the segments' buffers (a polygon with 4 segments a
     quarter circle, so a little short of the exact distance: 538.7 mm
     unsupported against 538.5 mm) and 3.7 s for GEOS's distance alone."""
@@ -237,7 +238,7 @@ def unsupported_extrusion(programs: Iterable, bead_width_mm=DEFAULT_BEAD_WIDTH_M
 
 #: programs with at least this many extruding moves are measured by
 #: :func:`ambots.parallel.workers` processes, each a run of levels (the 60 mm
-#: sphere's program, 116,000 moves: 1.7 s in one process)
+#: sphere's program, 116,000 moves: 1.45 s in one process, 0.8-1.0 s in two)
 PARALLEL_MIN_MOVES = 20000
 
 
