@@ -602,15 +602,22 @@ def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n
     ``pairs``: the (name, name) pairs wanted (default: every pair of
     ``arms``).  Returns {(a, b): mm}, with both orders of every pair.
 
-    ``clearance``: a dict to fill, for the pairs whose seam's normal is more
-    than 15 degrees off the line between their bases (arms beside each other
-    along a beam, on alternate sides: the protrusions, projected on the
-    normal, count each arm's wrist and forearm reaching along the seam's
-    normal although the arms come from opposite sides), with the zone from
-    the clearance of the sampled poses themselves (all capsules): the
-    smallest sum of distances across the seam beyond which every sampled
-    pair keeps ``margin_mm``, plus one grid step (:func:`_clearance_zone`),
-    at most the protrusions' zone."""
+    ``clearance``: a dict to fill, for the pairs with a seam plane from both
+    sides that do not face each other along it (:func:`_at_an_angle`), with
+    the zone from the clearance of the sampled poses themselves (all
+    capsules): the smallest sum of distances across the seam beyond which
+    every sampled pair keeps ``margin_mm``, plus one grid step
+    (:func:`_clearance_zone`), at most the protrusions' zone.  The
+    protrusions, projected on the normal, are tight for arms that face each
+    other along it (the default cell's) and loose for arms at an angle to
+    it, which count each arm's wrist and forearm reaching along the normal
+    although the two never meet there: arms beside each other along a beam
+    (until session 21 the only pairs that got this zone), four in the
+    corners of a bed (the Kinova and the UR10 on the 300 mm plate: 73.7 mm
+    projected, 59.5 mm by clearance).  Facing arms keep the projection: on
+    parts narrower than the zone (a 20 mm tower) no sampled pair is far
+    enough apart to tell, and the clearance would only say how far apart
+    they can get."""
     import manifold3d as m3
 
     from ambots.partition import arm_sites_mm, partition
@@ -728,20 +735,40 @@ def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n
         near = [(p, mine & (d <= window)) for p, mine, d in sides]
         z = margin_mm + sum(float(p[k].max()) * 1000.0 if k.any() else 0.0 for p, k in near)
         out[a, b] = out[b, a] = z
-        if clearance is not None and (ia, ib) in plane_of and (ib, ia) in plane_of:
-            nrm = plane_of[ia, ib][0]
-            across = sites[b] - sites[a]
-            # the protrusions are projected on the seam's normal: tight when the
-            # arms face each other along it, loose when they stand beside each other
-            if abs(float(nrm @ across)) < np.cos(np.radians(15.0)) * np.linalg.norm(nrm) * np.linalg.norm(across):
-                sel = []
-                for (x, ix, other), (_, k) in zip(((a, ia, ib), (b, ib, ia)), near):
-                    nx, ox = plane_of[ix, other]
-                    dist = sampled[x].tips[:, :2] * 1000.0 @ nx - ox
-                    sel.append((sampled[x], np.nonzero(k & (dist < z))[0], dist))
-                zc = _clearance_zone(sel[0], sel[1], z, margin_mm, step_mm)
-                clearance[a, b] = clearance[b, a] = min(z, zc)
+        if clearance is not None and (ia, ib) in plane_of and (ib, ia) in plane_of \
+                and _at_an_angle(plane_of[ia, ib][0], sites[a], sites[b],
+                                 [sampled[x].tips[k, :2] for x, (_, k) in zip((a, b), near)]):
+            sel = []
+            for (x, ix, other), (_, k) in zip(((a, ia, ib), (b, ib, ia)), near):
+                nx, ox = plane_of[ix, other]
+                dist = sampled[x].tips[:, :2] * 1000.0 @ nx - ox
+                sel.append((sampled[x], np.nonzero(k & (dist < z))[0], dist))
+            zc = _clearance_zone(sel[0], sel[1], z, margin_mm, step_mm)
+            clearance[a, b] = clearance[b, a] = min(z, zc)
     return out
+
+
+#: arms whose seam's normal is more than this off the line between their
+#: bases, or off the line from either arm's base to where it works near the
+#: seam, stand at an angle to it (:func:`_at_an_angle`)
+AT_AN_ANGLE_DEG = 15.0
+
+
+def _at_an_angle(normal, site_a, site_b, tips):
+    """Whether two arms do not face each other along their seam's ``normal``
+    (bed xy): the line between their bases ``site_*`` (m), or the line from
+    either base to the middle of its nozzle positions near the seam
+    (``tips``: one (M, 2) array per arm, m), more than
+    :data:`AT_AN_ANGLE_DEG` off the normal.  The protrusions projected on
+    the normal are tight for arms that face each other (the default cell's),
+    loose for arms beside each other along the seam (a beam's) or at an
+    angle to it (four in the corners of a bed, each facing the centre)."""
+    n = np.asarray(normal, dtype=float)[:2]
+    lines = [np.asarray(site_b, dtype=float) - np.asarray(site_a, dtype=float)]
+    lines += [np.mean(t, axis=0) - np.asarray(site, dtype=float)
+              for t, site in zip(tips, (site_a, site_b)) if len(t)]
+    limit = np.cos(np.radians(AT_AN_ANGLE_DEG))
+    return any(abs(float(n @ v)) < limit * np.linalg.norm(n) * np.linalg.norm(v) for v in lines)
 
 
 def _clearance_zone(side_a, side_b, z_mm, margin_mm, step_mm, chunk=20000):
@@ -750,20 +777,41 @@ def _clearance_zone(side_a, side_b, z_mm, margin_mm, step_mm, chunk=20000):
     two distances) keeps ``margin_mm`` of clearance (all capsules), plus one
     grid step ``step_mm`` for the poses between the samples; only pairs
     nearer than ``z_mm`` are looked at.  ``side_*``: (sampled poses, indices
-    of the poses to use, distance (mm) of every pose's nozzle to the seam)."""
+    of the poses to use, distance (mm) of every pose's nozzle to the seam).
+
+    The answer is the largest sum of a pair that comes within the margin, so
+    the pairs are taken from the largest sum down, ``chunk`` at a time, and
+    the first chunk with such a pair holds it.  Capsules of the two arms
+    that stay apart by the margin in every pose (the boxes they sweep over
+    the poses used, grown by their radii, do) are not compared.  Both give
+    the answer of comparing every capsule of every pair (the four-arm
+    cell's Kinova and UR10 on the 300 mm plate: 59.5 mm, 36 s -> 1-2 s)."""
     (sa, ia, da), (sb, ib, db) = side_a, side_b
     if not len(ia) or not len(ib):
         return float(margin_mm)
     S = da[ia][:, None] + db[ib][None, :]
     I, J = np.nonzero(S < z_mm)
-    worst = -np.inf
+    if not len(I):
+        return float(margin_mm)
+    order = np.argsort(-S[I, J], kind="stable")
+    I, J = I[order], J[order]
+    # the capsule pairs that can come within the margin in some pose pair
+    ra, rb = np.asarray(sa.body.radii), np.asarray(sb.body.radii)
+    lo_a = np.minimum(sa.A[ia], sa.B[ia]).min(axis=0) - ra[:, None]
+    hi_a = np.maximum(sa.A[ia], sa.B[ia]).max(axis=0) + ra[:, None]
+    lo_b = np.minimum(sb.A[ib], sb.B[ib]).min(axis=0) - rb[:, None]
+    hi_b = np.maximum(sb.A[ib], sb.B[ib]).max(axis=0) + rb[:, None]
+    gap = np.maximum(np.maximum(lo_b[None] - hi_a[:, None], lo_a[:, None] - hi_b[None]), 0.0)
+    ca, cb = np.nonzero(np.linalg.norm(gap, axis=2) < margin_mm / 1000.0)
+    if not len(ca):
+        return float(margin_mm)
     for k in range(0, len(I), chunk):
         i, j = ia[I[k:k + chunk]], ib[J[k:k + chunk]]
-        c = capsule_distances(sa.A[i], sa.B[i], sa.body.radii, sb.A[j], sb.B[j], sb.body.radii).min(axis=(1, 2))
-        bad = c < margin_mm / 1000.0
+        c = segment_distance(sa.A[i][:, ca], sa.B[i][:, ca], sb.A[j][:, cb], sb.B[j][:, cb]) - ra[ca] - rb[cb]
+        bad = c.min(axis=1) < margin_mm / 1000.0
         if bad.any():
-            worst = max(worst, float(S[I[k:k + chunk], J[k:k + chunk]][bad].max()))
-    return float(margin_mm) if not np.isfinite(worst) else worst + step_mm
+            return float(S[I[k:k + chunk], J[k:k + chunk]][bad].max()) + step_mm
+    return float(margin_mm)
 
 
 class CollisionCheck:

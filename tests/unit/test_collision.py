@@ -388,3 +388,64 @@ def test_seam_zone_of_the_default_cell(cell, bodies):
     assert np.all(c < 0)
     with pytest.raises(ValueError):
         seam_zone_mm(cell, direction="sideways")
+
+
+def test_arms_at_an_angle_to_their_seam_get_the_zone_their_poses_keep_clear():
+    """In the four-arm cell each arm faces the bed's centre, 45 degrees off the
+    seam it shares with a neighbour, so the protrusions projected on the
+    seam's normal count a Kinova's wrist housing reaching sideways although
+    it never meets the UR10 there.  The zone is then what the sampled poses
+    keep clear (``clearance=``), narrower than the projection.  Checked by a
+    second method on poses of our own, random points of the two parts (not
+    the zone's grid) solved nozzle down, every capsule against every
+    capsule: two nozzles the zone apart across the seam keep the 10 mm
+    margin, and the zone is no wider than needed by more than its grid step
+    and 5 mm (some pair nearer than that comes within the margin)."""
+    import trimesh
+
+    from ambots import data_path
+    from ambots.collision import seam_zones_mm
+    from ambots.job import split
+    from ambots.mesh import place_on_bed
+    four = load_cell(data_path("config", "cells", "four_arms.yaml"))
+    parts = split(place_on_bed(trimesh.creation.box((220.0, 220.0, 4.0))), four, list(four.arms))
+    tight = {}
+    zones = seam_zones_mm(four, parts=parts, clearance=tight, pairs=[("kinova1", "ur10_1")])
+    zone, projected = tight["kinova1", "ur10_1"], zones["kinova1", "ur10_1"]
+    assert 40.0 < zone < projected - 5.0
+    rng = np.random.default_rng(7)
+    side = {}
+    for name in ("kinova1", "ur10_1"):
+        part = next(p for p in parts if p.arm.name == name)
+        lo, hi = np.asarray(part.manifold.bounding_box()[:3]), np.asarray(part.manifold.bounding_box()[3:])
+        pts = rng.uniform(lo, hi, size=(4000, 3))
+        pts = pts[np.all([pts @ n - off >= 0.0 for n, off in part.planes], axis=0)][:250]
+        n, off = part.planes[part.neighbours.index("ur10_1" if name == "kinova1" else "kinova1")]
+        arm = four.arm(name)
+        body = ArmBody.from_arm(arm)
+        Q = solve(four, arm, body, pts / 1000.0)
+        side[name] = (body, Q, pts @ n - off)          # distance to the seam, mm
+    (ba, Qa, da), (bb, Qb, db) = side["kinova1"], side["ur10_1"]
+    i, j = np.meshgrid(np.arange(len(Qa)), np.arange(len(Qb)), indexing="ij")
+    i, j = i.ravel(), j.ravel()
+    S = da[i] + db[j]
+    c = clearance_between(ba, Qa[i], bb, Qb[j]) * 1000.0
+    assert np.all(c[S >= zone] >= 10.0 - 1e-6), c[S >= zone].min()
+    assert np.any(c[S < zone - 10.0 - 5.0] < 10.0)
+
+
+def test_arms_that_face_each_other_keep_the_projected_zone(cell):
+    """The default cell's arms face each other along their seam: the
+    projection is their zone (the two fan ducts and the margin), also on a
+    tower narrower than that, where no two poses are far enough apart
+    across the seam to tell what clearance they would keep."""
+    import trimesh
+
+    from ambots.collision import seam_zones_mm
+    from ambots.job import split
+    from ambots.mesh import place_on_bed
+    for box in ((240.0, 40.0, 10.0), (20.0, 20.0, 30.0)):
+        parts = split(place_on_bed(trimesh.creation.box(box)), cell, list(cell.arms))
+        tight = {}
+        zones = seam_zones_mm(cell, parts=parts, clearance=tight)
+        assert tight == {} and zones["kinova", "ur10"] == pytest.approx(50.0, abs=0.01)

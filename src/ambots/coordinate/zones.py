@@ -85,10 +85,10 @@ def seam_zones_for(cell, arms, parts=None):
     From the poses on the arms' shares of the whole bed (cached); with
     ``parts`` (a job's), the larger of that and the zone from the poses on
     those parts (the parts' planes can differ from the shares', and two arms
-    whose shares are far apart can get parts that meet), except for pairs of
-    arms beside each other along their seam (a beam's), whose zone is the
-    one the sampled poses on the parts keep clear
-    (``seam_zones_mm(..., clearance=)``)."""
+    whose shares are far apart can get parts that meet), or the zone the
+    sampled poses on the parts keep clear if smaller
+    (``seam_zones_mm(..., clearance=)``: for arms that do not face each
+    other along their seam, a beam's or four in the corners of a bed)."""
     from ambots.collision import seam_zones_mm
     if len(arms) < 2:
         return {}
@@ -100,7 +100,7 @@ def seam_zones_for(cell, arms, parts=None):
         tight = {}
         for k, v in seam_zones_mm(cell, arms, parts=parts, clearance=tight).items():
             zones[k] = max(zones.get(k, 0.0), float(v))
-        for k, v in tight.items():          # arms beside each other: the poses' own clearance
+        for k, v in tight.items():          # the poses' own clearance, if smaller
             zones[k] = min(zones[k], float(v))
     # rounded up to 0.01 mm: the last bits of the sums vary with how BLAS
     # threads split them, and band edges cut segments: the same job must get
