@@ -69,6 +69,8 @@ def adjacent_arms(arms, read, planes, zones):
 
 
 _ZONES = {}
+#: the zones of a job's parts, by the parts' planes and boxes (a few jobs' worth)
+_PART_ZONES = {}
 
 
 def seam_zone_for(cell, arms):
@@ -97,9 +99,18 @@ def seam_zones_for(cell, arms, parts=None):
         _ZONES[key] = {k: float(v) for k, v in seam_zones_mm(cell, arms).items()}
     zones = dict(_ZONES[key])
     if parts is not None:
-        tight = {}
-        for k, v in seam_zones_mm(cell, arms, parts=parts, clearance=tight).items():
-            zones[k] = max(zones.get(k, 0.0), float(v))
+        # the same parts again (a job's plans with other chunk bands): the same zones
+        part_key = key + tuple((p.arm.name, tuple(p.neighbours), tuple(p.manifold.bounding_box()),
+                                tuple((tuple(float(x) for x in n), float(o)) for n, o in p.planes)) for p in parts)
+        if part_key not in _PART_ZONES:
+            tight = {}
+            _PART_ZONES[part_key] = ({k: float(v) for k, v in
+                                      seam_zones_mm(cell, arms, parts=parts, clearance=tight).items()}, tight)
+            while len(_PART_ZONES) > 16:
+                _PART_ZONES.pop(next(iter(_PART_ZONES)))
+        projected, tight = _PART_ZONES[part_key]
+        for k, v in projected.items():
+            zones[k] = max(zones.get(k, 0.0), v)
         for k, v in tight.items():          # the poses' own clearance, if smaller
             zones[k] = min(zones[k], float(v))
     # rounded up to 0.01 mm: the last bits of the sums vary with how BLAS
