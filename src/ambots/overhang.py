@@ -224,8 +224,8 @@ def unsupported_extrusion(programs: Iterable, bead_width_mm=DEFAULT_BEAD_WIDTH_M
     lost_by_slab: Dict[int, float] = {}
     for t, u, b, lost in fork_map(lambda r: _levels(level, heights, slab, r, rule), runs):
         total, unsupported, bridged = total + t, unsupported + u, bridged + b
-        for n_, v in lost.items():
-            lost_by_slab[n_] = lost_by_slab.get(n_, 0.0) + v
+        for layer, mm in lost.items():
+            lost_by_slab[layer] = lost_by_slab.get(layer, 0.0) + mm
     first = int(slab.min())
     per_layer = [{"layer": n - first + 1, "z_mm": round(float(heights[slab == n].max()), 4),
                   "unsupported_mm": round(lost_by_slab[n], 3)} for n in sorted(lost_by_slab)]
