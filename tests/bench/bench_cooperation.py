@@ -113,20 +113,29 @@ def with_coaxial_heads(cell, folder):
     return load_cell(path)
 
 
-def nozzle_distances(cells):
+def nozzle_distances(cells, model=None):
     """Item 2 of the issue: how near two arms' nozzles may come across the
     seam between them (the seam zone: both arms' bodies facing each other
     plus the 10 mm margin, :func:`ambots.collision.seam_zones_mm`), with the
-    print head on the flange's axis (before) and on the profiles' bracket."""
+    print head on the flange's axis (before) and on the profiles' bracket,
+    over the whole bed; and the zone a job of ``model`` (a mesh) uses, from
+    the poses on its parts, where arms at an angle to their seam get the
+    clearance those poses keep (:func:`ambots.coordinate.seam_zones_for`)."""
     from ambots.collision import seam_zones_mm
+    from ambots.coordinate import seam_zones_for
+    from ambots.job import split
     with tempfile.TemporaryDirectory() as tmp:
         for cell in cells:
             before = seam_zones_mm(with_coaxial_heads(cell, tmp))
             after = seam_zones_mm(cell)
+            job = seam_zones_for(cell, list(cell.arms), split(model, cell, list(cell.arms))) \
+                if model is not None else {}
             for (a, b), mm in sorted(after.items()):
                 if a < b:
                     print("nozzle to nozzle across the seam, %-10s %-8s %-8s head on the flange's axis %6.1f mm, "
-                          "on the bracket %6.1f mm" % (cell.name, a, b, before[a, b], mm), flush=True)
+                          "on the bracket %6.1f mm%s" % (cell.name, a, b, before[a, b], mm,
+                                                        ", a job on the 300 mm plate %6.1f mm" % job[a, b]
+                                                        if (a, b) in job else ""), flush=True)
 
 
 def _best_single(job):
@@ -169,7 +178,7 @@ def main():
     two = load_cell(default_cell_path())
     three = load_cell(data_path("config", "cells", "three_arms.yaml"))
     four = load_cell(data_path("config", "cells", "four_arms.yaml"))
-    nozzle_distances([two, four])
+    nozzle_distances([two, four], models()["plate 300 x 300 x 4"])
     sim = os.environ.get("BENCH_COOPERATION_SIM", "1") != "0"
     worst = 0.0
     with tempfile.TemporaryDirectory() as tmp:
