@@ -581,8 +581,8 @@ def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n
     Each arm is sampled (IK from its home, nozzle down) on a bed grid of at
     least ``n`` x ``n`` points, at most ``spacing`` (m) apart, at
     ``n_heights`` heights; a redundant arm (more than 6 joints) also from
-    seeds with its upper-arm roll turned by up to 0.8 rad, since it drifts
-    along its self-motion while it prints.  Only the samples whose nozzle is
+    seeds with its upper-arm roll turned by up to 0.8 rad, since along its
+    self-motion its joints depend on the path it printed.  Only the samples whose nozzle is
     on the arm's own share of the bed count (the part it would get if the
     whole bed were split among ``arms`` like a model,
     :func:`ambots.partition.partition`: an arm never prints on another's
@@ -677,10 +677,11 @@ def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n
         home = np.asarray(arm.profile.home, dtype=float)
         seeds = [home]
         if body.kin.dof > 6:
-            # a redundant arm drifts along its self-motion while it prints (each
-            # pose solved from the last): sample that too, from seeds with the
-            # joint before the elbow (the upper arm's roll in a 7-joint arm)
-            # turned up to 0.8 rad, and count the worst
+            # a redundant arm's joints along its self-motion depend on its path
+            # (each pose solved from the last, turning back towards home at
+            # most 1 rad a metre, kinematics.POSTURE_RAD_PER_M): sample that too,
+            # from seeds with the joint before the elbow (the upper arm's roll
+            # in a 7-joint arm) turned up to 0.8 rad, and count the worst
             roll = body.kin.dof // 2 - 1
             for delta in (-0.8, -0.4, 0.4, 0.8):
                 seed = home.copy()

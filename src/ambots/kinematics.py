@@ -19,7 +19,12 @@ rows, 2 rows for the tilt of the nozzle axis; a 6th row for the turn about
 the nozzle axis with a ``trail``), run on many targets at once.
 :meth:`ArmKinematics.ik_path` solves a densely sampled toolpath by solving
 sparse key points one after the other (each seeded by the previous one), then
-refining every point at once from seeds interpolated between the keys.
+refining every point at once from seeds interpolated between the keys.  An
+arm with joints to spare (more joints than task rows: the Panda's seven for
+six) would drift along its self-motion, each key seeded by the one before;
+with a ``rest`` posture (the profile's home) each key after the first also
+steps along the self-motion towards it (:data:`POSTURE_RAD_PER_M`), so the
+joints at a nozzle position no longer depend on how long the arm printed.
 
 Units: metres and radians.  All poses are in the arm's base frame.
 """
@@ -36,6 +41,16 @@ __all__ = ["Segment", "Chain", "chain_from_urdf", "kdl_chain", "ArmKinematics", 
 
 #: nozzle pointing straight down in a base frame whose z axis is up
 DOWN = np.array([0.0, 0.0, -1.0])
+
+#: how fast :meth:`ArmKinematics.ik_path` turns a redundant arm along its
+#: self-motion towards its rest posture: at most this many radians (on any
+#: joint) per metre of the nozzle's path.  At 40 mm/s that is 0.04 rad/s of
+#: self-motion, next to the Panda's 1.09 rad/s (its limit at velocity scaling
+#: 0.5), so the timing law does not slow a print for it; a 2.4 rad drift is
+#: undone within 2.4 m of path (a layer of a 150 mm part).  Session 22: the
+#: Panda, 20 passes over a 200 x 200 mm square: joints 1 and 3 at the start of
+#: a pass had wandered up to 2.4 rad without it, under 0.0005 rad with it.
+POSTURE_RAD_PER_M = 1.0
 
 
 class Segment(NamedTuple):
@@ -185,9 +200,14 @@ class ArmKinematics:
         frame's z axis, so the flange, wrist and forearm stay between the
         nozzle and the arm's base (:func:`trail_targets`).  None: that turn
         is free (the iteration's least-norm step keeps it near the seed).
+    rest : (n,) array or None
+        The posture an arm with joints to spare returns to along its
+        self-motion while :meth:`ik_path` follows a path (the profile's home,
+        :func:`ambots.model.arm_kinematics`); None: none (each key point
+        stays as near its seed as the least-norm step leaves it).
     """
 
-    def __init__(self, chain, tool_axis=(0.0, 0.0, 1.0), trail=None):
+    def __init__(self, chain, tool_axis=(0.0, 0.0, 1.0), trail=None, rest=None):
         if chain.dof == 0:
             raise KinematicsError("chain %s -> %s has no movable joint" % (chain.base, chain.tip))
         self.chain = chain
@@ -219,11 +239,17 @@ class ArmKinematics:
         self._lower_py = [float(v) for v in self.lower]
         self._upper_py = [float(v) for v in self.upper]
         self._kdl = None
+        self.rest = None
+        if rest is not None:
+            self.rest = np.asarray(rest, dtype=float).reshape(-1)
+            if len(self.rest) != chain.dof:
+                raise KinematicsError("rest posture has %d joints, the chain %d" % (len(self.rest), chain.dof))
 
     @classmethod
-    def from_urdf(cls, urdf_xml, base="base_link", tip="nozzle", prefix="", tool_axis=(0.0, 0.0, 1.0), trail=None):
+    def from_urdf(cls, urdf_xml, base="base_link", tip="nozzle", prefix="", tool_axis=(0.0, 0.0, 1.0), trail=None,
+                  rest=None):
         """Build from a URDF string; ``prefix`` is prepended to ``base`` and ``tip``."""
-        return cls(chain_from_urdf(urdf_xml, prefix + base, prefix + tip), tool_axis, trail)
+        return cls(chain_from_urdf(urdf_xml, prefix + base, prefix + tip), tool_axis, trail, rest)
 
     @property
     def dof(self):
@@ -591,6 +617,38 @@ class ArmKinematics:
         ok = ok and all(lo[i] - 1e-9 <= v <= hi[i] + 1e-9 for i, v in enumerate(q))
         return np.array(q), ok, err
 
+    def task_jacobian(self, q, axis=DOWN):
+        """The IK's task rows at joints ``q`` for a nozzle along ``axis``
+        (base frame): the nozzle's velocity (3 rows), the tilt of its axis
+        about the two directions perpendicular to ``axis`` (2), and with a
+        ``trail`` the turn about the axis (1) -> (5 or 6, n)."""
+        T, _, J = self._forward(np.reshape(np.asarray(q, dtype=float), (1, -1)), jacobian=True)
+        d = np.asarray(axis, dtype=float).reshape(3)
+        d = d / np.linalg.norm(d)
+        u = _cross(d[None], np.array([[1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0]]))[0]
+        u /= np.linalg.norm(u)
+        rows = [J[0, :3], u @ J[0, 3:], np.cross(d, u) @ J[0, 3:]]
+        if self.trail is not None:
+            rows.append(d @ J[0, 3:])
+        return np.vstack(rows)
+
+    def spare(self):
+        """Whether the arm has joints to spare for its task (a self-motion)."""
+        return self.dof > (5 if self.trail is None else 6)
+
+    def _toward_rest(self, position, q, axis, budget, kw):
+        """``q`` (solving ``position``) moved along the self-motion towards
+        :attr:`rest` by at most ``budget`` rad on any joint, the task solved
+        again from there; ``q`` itself if that fails."""
+        A = self.task_jacobian(q, axis)
+        step = (np.eye(self.dof) - np.linalg.pinv(A, rcond=1e-6) @ A) @ (self.rest - q)
+        big = float(np.max(np.abs(step)))
+        if big < 1e-9:
+            return q
+        step *= min(1.0, budget / big)
+        Q, ok, _ = self.ik_batch(np.reshape(position, (1, 3)), q + step, axis, **kw)
+        return Q[0] if ok[0] else q
+
     def ik(self, position, seed, axis=DOWN, **kw):
         """One IK solve: joint vector (n,) that puts the nozzle tip at
         ``position`` (3,) pointing along ``axis``, starting from ``seed``.
@@ -609,7 +667,11 @@ class ArmKinematics:
 
         Key points at most ``key_spacing`` (m) apart are solved one after the
         other (each seeded by the previous one); every point is then refined at
-        once from joint seeds interpolated between the keys.  A point whose
+        once from joint seeds interpolated between the keys.  An arm with joints
+        to spare and a :attr:`rest` posture steps each key after the first along
+        its self-motion towards that posture, by at most :data:`POSTURE_RAD_PER_M`
+        times the path's length from the key before (the points between follow
+        the keys: the refinement's least-norm steps keep their self-motion).  A point whose
         joints move more than ``max_joint_step`` (rad; default: 10x the path
         step over the reach, at least 0.05) from its neighbour counts as a
         discontinuity and is not ok.
@@ -630,12 +692,16 @@ class ArmKinematics:
         q = np.asarray(seed, dtype=float)
         ok = np.zeros(N, dtype=bool)
         n_ok_keys = len(keys)
+        posture = self.rest is not None and self.spare()
         for i, k in enumerate(keys):
             Qi, oki, _ = self.ik_batch(P[k:k + 1], q, D[k], **kw)
             if not oki[0]:
                 n_ok_keys = i
                 break
-            q = Qk[i] = Qi[0]
+            q = Qi[0]
+            if posture and i > 0:        # the path starts where the seed is; later keys turn towards rest
+                q = self._toward_rest(P[k], q, D[k], POSTURE_RAD_PER_M * (s[k] - s[keys[i - 1]]), kw)
+            Qk[i] = q
         if n_ok_keys == 0:
             return np.tile(np.asarray(seed, dtype=float), (N, 1)), ok
         last = keys[n_ok_keys - 1]

@@ -113,8 +113,10 @@ def cell_urdf(cell: Cell):
 
 def arm_kinematics(arm):
     """:class:`~ambots.kinematics.ArmKinematics` base_link -> nozzle of an arm
-    (an :class:`ArmInstance` of a cell, or a bare :class:`ArmProfile`)."""
+    (an :class:`ArmInstance` of a cell, or a bare :class:`ArmProfile`); an arm
+    with joints to spare returns along its self-motion to its home posture
+    while it follows a path (``rest``)."""
     from ambots.kinematics import ArmKinematics
     profile = arm.profile if isinstance(arm, ArmInstance) else arm
     return ArmKinematics.from_urdf(arm_urdf(profile), base=profile.base_link, tip=profile.tool_link,
-                                   trail=profile.tool_trail)
+                                   trail=profile.tool_trail, rest=profile.home)

@@ -467,9 +467,11 @@ class MotionPlanner:
         target's IK starts from the home pose (from ``q0`` if it fails), so
         the arm stands at a park position with the same joints every time,
         whatever it printed before.  Along a print the IK starts from the
-        joints before, and a redundant arm drifts (the Panda of the
-        three-arm cell: 2.6 rad on joints 1 and 3 after hours); the joint
-        moves from the park position down to the part
+        joints before (a redundant arm turning back towards its home posture
+        along its self-motion, :data:`ambots.kinematics.POSTURE_RAD_PER_M`;
+        before session 22 the Panda of the three-arm cell drifted 2.6 rad on
+        joints 1 and 3 after hours); the joint moves from the park position
+        down to the part
         (:class:`~ambots.coordinate.parking.JointMoves`) are then the ones
         the coordinator checked."""
         return self._timed(self._joint_move_to(target_base, q0, line, layer,

@@ -115,10 +115,11 @@ class JointMoves:
     def redundant(self, name):
         """Whether the arm has joints to spare for the nozzle's position, its
         direction and (with a ``trail``) its turn: then the joints it prints
-        with drift along the spare freedom (each IK starts from the joints
-        before), and where it leaves the part no estimate follows them."""
-        kin = self.kin[name]
-        return kin.dof > 5 + (kin.trail is not None)
+        with depend on the path along the spare freedom (each IK starts from
+        the joints before and turns towards the home posture by at most
+        :data:`ambots.kinematics.POSTURE_RAD_PER_M`), and where it leaves the
+        part no estimate follows them."""
+        return self.kin[name].spare()
 
     def joints(self, name, a_mm, b_mm, park=False):
         """Joint vectors (samples, n) of the joint move from nozzle-down at
