@@ -132,7 +132,7 @@ class _Below:
 
 def _sample(path, step_mm):
     """Sample points of one path: (n, 2) xy, (n,) weights (mm of path each)."""
-    seg = np.asarray(path, float)                 # (m, 2, 3)
+    seg = np.asarray(path, float)                 # (m, 2, 3) (already an array: no copy)
     a, b = seg[:, 0, :2], seg[:, 1, :2]
     length = np.hypot(*(b - a).T)
     k = np.maximum(1, np.ceil(length / step_mm)).astype(int)
@@ -251,11 +251,12 @@ def _levels(level, heights, slab, run, rule):
     lo, hi = run
     total = unsupported = bridged = 0.0
     lost_by_slab: Dict[int, float] = {}
-    below = lambda k: _Below(np.concatenate([np.asarray(p, float)[:, :, :2] for p in level(k)]), bead_width_mm)
-    carries = {j: below(j) for j in range(lo)      # level -> its extrusion (:class:`_Below`)
+    arrays = lambda k: [np.asarray(p, float) for p in level(k)]        # (m, 2, 3) each, made once a level
+    below = lambda paths: _Below(np.concatenate([p[:, :, :2] for p in paths]), bead_width_mm)
+    carries = {j: below(arrays(j)) for j in range(lo)      # level -> its extrusion (:class:`_Below`)
                if heights[j] >= heights[lo] - 1.75 * h - _Z_TOL}
     for k in range(lo, hi):
-        members = level(k)
+        members = arrays(k)
         samples = [_sample(p, step_mm) for p in members]
         for j in [j for j in carries if heights[j] < heights[k] - 1.75 * h - _Z_TOL]:
             del carries[j]                  # below every later window
@@ -278,7 +279,7 @@ def _levels(level, heights, slab, run, rule):
                 lost_by_slab[int(slab[k])] = lost_by_slab.get(int(slab[k]), 0.0) + lost
             unsupported += lost
         if k + 1 < hi:
-            carries[k] = below(k)
+            carries[k] = below(members)
     return total, unsupported, bridged, lost_by_slab
 
 
