@@ -131,8 +131,9 @@ class _Below:
 
 
 def _sample(path, step_mm):
-    """Sample points of one path: (n, 2) xy, (n,) weights (mm of path each)."""
-    seg = np.asarray(path, float)                 # (m, 2, 3) (already an array: no copy)
+    """Sample points of one path ((m, 2, 3) array of segments, mm): (n, 2)
+    xy, (n,) weights (mm of path each)."""
+    seg = path
     a, b = seg[:, 0, :2], seg[:, 1, :2]
     length = np.hypot(*(b - a).T)
     k = np.maximum(1, np.ceil(length / step_mm)).astype(int)

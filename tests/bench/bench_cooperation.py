@@ -113,12 +113,13 @@ def with_coaxial_heads(cell, folder):
     return load_cell(path)
 
 
-def nozzle_distances(cells, model=None):
+def nozzle_distances(cells, model=None, label="the model"):
     """Item 2 of the issue: how near two arms' nozzles may come across the
     seam between them (the seam zone: both arms' bodies facing each other
     plus the 10 mm margin, :func:`ambots.collision.seam_zones_mm`), with the
     print head on the flange's axis (before) and on the profiles' bracket,
-    over the whole bed; and the zone a job of ``model`` (a mesh) uses, from
+    over the whole bed; and the zone a job of ``model`` (a mesh, called
+    ``label`` in the printout) uses, from
     the poses on its parts, where arms at an angle to their seam get the
     clearance those poses keep (:func:`ambots.coordinate.seam_zones_for`)."""
     from ambots.collision import seam_zones_mm
@@ -134,7 +135,7 @@ def nozzle_distances(cells, model=None):
                 if a < b:
                     print("nozzle to nozzle across the seam, %-10s %-8s %-8s head on the flange's axis %6.1f mm, "
                           "on the bracket %6.1f mm%s" % (cell.name, a, b, before[a, b], mm,
-                                                        ", a job on the 300 mm plate %6.1f mm" % job[a, b]
+                                                        ", a job on %s %6.1f mm" % (label, job[a, b])
                                                         if (a, b) in job else ""), flush=True)
 
 
@@ -178,7 +179,7 @@ def main():
     two = load_cell(default_cell_path())
     three = load_cell(data_path("config", "cells", "three_arms.yaml"))
     four = load_cell(data_path("config", "cells", "four_arms.yaml"))
-    nozzle_distances([two, four], models()["plate 300 x 300 x 4"])
+    nozzle_distances([two, four], models()["plate 300 x 300 x 4"], "the 300 mm plate")
     sim = os.environ.get("BENCH_COOPERATION_SIM", "1") != "0"
     worst = 0.0
     with tempfile.TemporaryDirectory() as tmp:
