@@ -418,9 +418,10 @@ class SeamZone:
     ``any_mm`` counts each arm's own forearm, shoulder and base trailing back
     towards its base (they are within the band of a nozzle on the bed), so it
     is about the arms' reach, not a usable zone; ``facing_mm`` is the one to
-    use.  Default cell, 10 mm margin: facing 154.3 mm (Kinova 68.3, its wrist
-    housing around J5; UR10 76.0, its wrist: both stacked above the nozzle),
-    any direction 2021 mm."""
+    use.  Default cell, 10 mm margin: facing 50.0 mm (20 mm each, the fan
+    ducts of the print heads on their brackets; 154.3 mm with the heads on
+    the flanges' axes, before session 14: the wrists, Kinova 68.3, UR10
+    76.0), any direction 2021 mm."""
     any_mm: float
     facing_mm: float
     margin_mm: float
@@ -457,9 +458,15 @@ def _sample(cell, arm, n, heights):
     body = ArmBody.from_arm(arm)
     tips = _transform(np.linalg.inv(cell.bed.pose), bed_points(cell, n, heights))
     Q, ok = _solve_down(cell, arm, body, tips)
+    return _solved(cell, arm, body, tips, Q, ok, "bed grid points")
+
+
+def _solved(cell, arm, body, tips, Q, ok, what):
+    """:class:`_Sampled` of the poses solved (``ok``) among ``Q`` for the
+    nozzle-down ``tips`` (bed frame, m); :class:`UnreachableError` naming the
+    arm and how many ``what`` it tried if none was."""
     if not ok.any():
-        raise UnreachableError("arm %r reaches none of the %d bed grid points with the nozzle down"
-                               % (arm.name, len(tips)))
+        raise UnreachableError("arm %r reaches none of the %d %s with the nozzle down" % (arm.name, len(tips), what))
     A, B, _ = body.capsules(Q[ok])
     inv = np.linalg.inv(cell.bed.pose)
     return _Sampled(arm, body, tips[ok], Q[ok], _transform(inv, A), _transform(inv, B))
@@ -592,8 +599,8 @@ def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n
     the nozzle no farther from the plane between them than the arm's own
     base (farther, the fixed base stays between the nozzle and the plane).
     Two arms never that near each other (far apart in a row) get a zone of
-    ``margin_mm``.  For the default cell this gives the same 154.3 mm as
-    :func:`seam_zone`.
+    ``margin_mm``.  For the default cell this gives the same 50.0 mm as
+    :func:`seam_zone`'s ``facing_mm``.
 
     ``parts``: the :class:`~ambots.partition.Part` of each arm of a job
     (mm): the shares are then the parts themselves (a grid ``part_spacing``
@@ -618,10 +625,6 @@ def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n
     parts narrower than the zone (a 20 mm tower) no sampled pair is far
     enough apart to tell, and the clearance would only say how far apart
     they can get."""
-    import manifold3d as m3
-
-    from ambots.partition import arm_sites_mm, partition
-    from ambots.workspace import down_in_base, world_to_base
     arms = list(cell.arms if arms is None else arms)
     names = [a.name for a in arms]
     if pairs is None:
@@ -630,110 +633,27 @@ def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n
     if not pairs:
         return {}
     if parts is None:
-        # each point of a bed grid belongs to the arm whose share of the bed holds it
-        sx, sy, _ = cell.bed.size
-        nx, ny = max(n, int(np.ceil(sx / spacing)) + 1), max(n, int(np.ceil(sy / spacing)) + 1)
-        u, v = np.meshgrid(np.linspace(-sx / 2, sx / 2, nx), np.linspace(-sy / 2, sy / 2, ny), indexing="ij")
-        flat = np.stack([u.ravel(), v.ravel()], axis=1)
-        step_mm = 1000.0 * max(sx / (nx - 1), sy / (ny - 1))
-        slab = m3.Manifold.cube([sx * 1000.0, sy * 1000.0, 1.0]).translate([-sx * 500.0, -sy * 500.0, 0.0])
-        regions = [(part.planes, cell.bed.max_height, part.neighbours)
-                   for part in partition(slab, cell, arms, check_reach=False)]
+        grid = _bed_shares(cell, arms, n, spacing)
     else:
-        # a grid over each part's bounding box
-        by_name = {p.arm.name: p for p in parts}
-        regions, chunks = [], []
-        for name in names:
-            part = by_name.get(name)
-            if part is None or part.empty:
-                regions.append(([(np.array([0.0, 0.0, 1.0]), np.inf)], 0.0, []))
-                continue
-            lo, hi = np.asarray(part.manifold.bounding_box()[:3]) / 1000.0, \
-                np.asarray(part.manifold.bounding_box()[3:]) / 1000.0
-            gx = np.arange(lo[0], hi[0] + part_spacing / 2, part_spacing)
-            gy = np.arange(lo[1], hi[1] + part_spacing / 2, part_spacing)
-            u, v = np.meshgrid(gx, gy, indexing="ij")
-            chunks.append(np.stack([u.ravel(), v.ravel()], axis=1))
-            regions.append((part.planes, max(float(hi[2]), 1e-3), list(part.neighbours)))
-        flat = np.concatenate(chunks) if chunks else np.zeros((0, 2))
-        step_mm = 1000.0 * part_spacing
-    flat_owner = np.full(len(flat), -1)
-    for i, (planes, _, _) in enumerate(regions):
-        inside = np.all([flat * 1000.0 @ np.asarray(nrm)[:2] - off >= -1e-6 for nrm, off in planes], axis=0)
-        flat_owner[(flat_owner < 0) & inside] = i
-    top = max(h for _, h, _ in regions)
-    heights = np.linspace(0.0, top, n_heights)
-    tips = np.concatenate([np.column_stack([flat, np.full(len(flat), h)]) for h in heights])
-    owner = np.tile(flat_owner, n_heights)
-    for i, (_, h, _) in enumerate(regions):              # no higher than the part
-        owner[(owner == i) & (tips[:, 2] > h + 1e-9)] = -1
+        grid = _part_shares(names, parts, part_spacing)
+    tips, owner = _share_tips(grid, n_heights)
     used = sorted({x for pair in pairs for x in pair}, key=names.index)
     sampled, own = {}, {}
     for name in used:
-        arm = arms[names.index(name)]
-        body = ArmBody.from_arm(arm)
-        mine = tips[owner == names.index(name)]                 # poses on its own share only
-        local = world_to_base(arm, _transform(cell.bed.pose, mine))
-        home = np.asarray(arm.profile.home, dtype=float)
-        seeds = [home]
-        if body.kin.dof > 6:
-            # a redundant arm's joints along its self-motion depend on its path
-            # (each pose solved from the last, turning back towards home at
-            # most 1 rad a metre, kinematics.POSTURE_RAD_PER_M): sample that too,
-            # from seeds with the joint before the elbow (the upper arm's roll
-            # in a 7-joint arm) turned up to 0.8 rad, and count the worst
-            roll = body.kin.dof // 2 - 1
-            for delta in (-0.8, -0.4, 0.4, 0.8):
-                seed = home.copy()
-                seed[roll] = np.clip(seed[roll] + delta, body.kin.lower[roll], body.kin.upper[roll])
-                seeds.append(seed)
-        sols = [body.kin.ik_batch(local, seed, down_in_base(arm))[:2] for seed in seeds]
-        Q = np.concatenate([q for q, _ in sols])
-        ok = np.concatenate([k for _, k in sols])
-        mine = np.tile(mine, (len(seeds), 1))
-        if not ok.any():
-            raise UnreachableError("arm %r reaches none of the %d grid points of its share with the nozzle down"
-                                   % (name, len(mine)))
-        A, B, _ = body.capsules(Q[ok])
-        inv = np.linalg.inv(cell.bed.pose)
-        sampled[name] = _Sampled(arm, body, mine[ok], Q[ok], _transform(inv, A), _transform(inv, B))
-        own[name] = np.full(int(ok.sum()), names.index(name))
+        i = names.index(name)
+        sampled[name] = _sample_share(cell, arms[i], tips[owner == i])        # poses on its own share only
+        own[name] = np.full(len(sampled[name].tips), i)
+    from ambots.partition import arm_sites_mm
     sites = dict(zip(names, arm_sites_mm(cell, arms) / 1000.0))
-
-    def to_share(P, i):
-        """Horizontal distance (m) from points P to the grid points of share i."""
-        Q = flat[flat_owner == i]
-        out = np.full(len(P), np.inf)
-        for k in range(0, len(P) if len(Q) else 0, 256):
-            out[k:k + 256] = np.linalg.norm(P[k:k + 256, None, :2] - Q[None], axis=2).min(axis=1)
-        return out
-
-    # the plane between each pair, from each side: distance n . p - off (mm)
-    plane_of = {}
-    for i, (planes, _, others) in enumerate(regions):
-        for (nrm, off), other in zip(planes, others):
-            if other in names:
-                plane_of[i, names.index(other)] = (np.asarray(nrm, dtype=float)[:2], float(off))
+    plane_of = _planes_between(grid.regions, names)
     out = {}
     for a, b in pairs:
         ia, ib = names.index(a), names.index(b)
-        sides = []
+        near = []
         for x, ix, other in ((a, ia, ib), (b, ib, ia)):
-            if (ix, other) in plane_of:
-                nrm, off = plane_of[ix, other]
-                u = -nrm / np.linalg.norm(nrm)
-                # a pose with the nozzle farther from the plane than the arm's
-                # own base has the (fixed) base between the nozzle and the
-                # plane: the base does not come nearer, whatever the pose
-                front = sampled[x].tips[:, :2] * 1000.0 @ nrm - off <= sites[x] * 1000.0 @ nrm - off
-            else:
-                u = (sites[names[other]] - sites[x]) / np.linalg.norm(sites[names[other]] - sites[x])
-                front = np.ones(len(own[x]), dtype=bool)
-            mine = (own[x] == ix) & front
-            d = np.full(len(mine), np.inf)
-            d[mine] = to_share(sampled[x].tips[mine], other)
-            sides.append((_protrusion(sampled[x], band, u), mine, d))
-        near = [(p, mine & (d <= window)) for p, mine, d in sides]
+            protrusion, mine, d = _facing_side(sampled[x], own[x] == ix, grid, plane_of.get((ix, other)),
+                                               sites[x], sites[names[other]], other, band)
+            near.append((protrusion, mine & (d <= window)))
         z = margin_mm + sum(float(p[k].max()) * 1000.0 if k.any() else 0.0 for p, k in near)
         out[a, b] = out[b, a] = z
         if clearance is not None and (ia, ib) in plane_of and (ib, ia) in plane_of \
@@ -744,9 +664,153 @@ def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n
                 nx, ox = plane_of[ix, other]
                 dist = sampled[x].tips[:, :2] * 1000.0 @ nx - ox
                 sel.append((sampled[x], np.nonzero(k & (dist < z))[0], dist))
-            zc = _clearance_zone(sel[0], sel[1], z, margin_mm, step_mm)
+            zc = _clearance_zone(sel[0], sel[1], z, margin_mm, grid.step_mm)
             clearance[a, b] = clearance[b, a] = min(z, zc)
     return out
+
+
+class _Shares(NamedTuple):
+    """The arms' shares for :func:`seam_zones_mm`: grid points ``flat``
+    (K, 2) m in the bed frame, ``flat_owner`` (K,) the index of the arm
+    whose share holds each (-1: none), the grid step (mm) and per arm its
+    ``regions`` entry (its planes (normal, offset mm), the share's top (m),
+    the arms on the other side of its planes)."""
+    flat: np.ndarray
+    flat_owner: np.ndarray
+    step_mm: float
+    regions: list
+
+
+def _owners(flat, regions):
+    """The index of the region whose planes keep each point (-1: none; the first wins)."""
+    flat_owner = np.full(len(flat), -1)
+    for i, (planes, _, _) in enumerate(regions):
+        inside = np.all([flat * 1000.0 @ np.asarray(nrm)[:2] - off >= -1e-6 for nrm, off in planes], axis=0)
+        flat_owner[(flat_owner < 0) & inside] = i
+    return flat_owner
+
+
+def _bed_shares(cell, arms, n, spacing):
+    """:class:`_Shares` of the whole bed split among ``arms`` as a model
+    would be (:func:`ambots.partition.partition` of a 1 mm slab): a grid of
+    at least ``n`` x ``n`` points at most ``spacing`` (m) apart."""
+    import manifold3d as m3
+
+    from ambots.partition import partition
+    sx, sy, _ = cell.bed.size
+    nx, ny = max(n, int(np.ceil(sx / spacing)) + 1), max(n, int(np.ceil(sy / spacing)) + 1)
+    u, v = np.meshgrid(np.linspace(-sx / 2, sx / 2, nx), np.linspace(-sy / 2, sy / 2, ny), indexing="ij")
+    flat = np.stack([u.ravel(), v.ravel()], axis=1)
+    step_mm = 1000.0 * max(sx / (nx - 1), sy / (ny - 1))
+    slab = m3.Manifold.cube([sx * 1000.0, sy * 1000.0, 1.0]).translate([-sx * 500.0, -sy * 500.0, 0.0])
+    regions = [(part.planes, cell.bed.max_height, part.neighbours)
+               for part in partition(slab, cell, arms, check_reach=False)]
+    return _Shares(flat, _owners(flat, regions), step_mm, regions)
+
+
+def _part_shares(names, parts, part_spacing):
+    """:class:`_Shares` of a job's parts: a grid ``part_spacing`` (m) apart
+    over each part's bounding box, inside its planes, up to its top."""
+    by_name = {p.arm.name: p for p in parts}
+    regions, chunks = [], []
+    for name in names:
+        part = by_name.get(name)
+        if part is None or part.empty:
+            regions.append(([(np.array([0.0, 0.0, 1.0]), np.inf)], 0.0, []))
+            continue
+        lo, hi = np.asarray(part.manifold.bounding_box()[:3]) / 1000.0, \
+            np.asarray(part.manifold.bounding_box()[3:]) / 1000.0
+        gx = np.arange(lo[0], hi[0] + part_spacing / 2, part_spacing)
+        gy = np.arange(lo[1], hi[1] + part_spacing / 2, part_spacing)
+        u, v = np.meshgrid(gx, gy, indexing="ij")
+        chunks.append(np.stack([u.ravel(), v.ravel()], axis=1))
+        regions.append((part.planes, max(float(hi[2]), 1e-3), list(part.neighbours)))
+    flat = np.concatenate(chunks) if chunks else np.zeros((0, 2))
+    return _Shares(flat, _owners(flat, regions), 1000.0 * part_spacing, regions)
+
+
+def _share_tips(grid, n_heights):
+    """The grid's points at ``n_heights`` heights from the bed to the
+    highest share's top, (tips (M, 3) m, the arm index owning each: -1
+    where none does or above its share's top)."""
+    regions = grid.regions
+    top = max(h for _, h, _ in regions)
+    heights = np.linspace(0.0, top, n_heights)
+    tips = np.concatenate([np.column_stack([grid.flat, np.full(len(grid.flat), h)]) for h in heights])
+    owner = np.tile(grid.flat_owner, n_heights)
+    for i, (_, h, _) in enumerate(regions):              # no higher than the part
+        owner[(owner == i) & (tips[:, 2] > h + 1e-9)] = -1
+    return tips, owner
+
+
+def _sample_share(cell, arm, mine):
+    """:class:`_Sampled` poses of ``arm`` with the nozzle down on the points
+    ``mine`` (M, 3) m of the bed frame (its share), IK from its home; a
+    redundant arm's also from seeds with its upper-arm roll turned by up to
+    0.8 rad.  :class:`UnreachableError` if it reaches none of them."""
+    from ambots.workspace import down_in_base, world_to_base
+    body = ArmBody.from_arm(arm)
+    local = world_to_base(arm, _transform(cell.bed.pose, mine))
+    home = np.asarray(arm.profile.home, dtype=float)
+    seeds = [home]
+    if body.kin.dof > 6:
+        # a redundant arm's joints along its self-motion depend on its path
+        # (each pose solved from the last, turning back towards home at
+        # most 1 rad a metre, kinematics.POSTURE_RAD_PER_M): sample that too,
+        # from seeds with the joint before the elbow (the upper arm's roll
+        # in a 7-joint arm) turned up to 0.8 rad, and count the worst
+        roll = body.kin.dof // 2 - 1
+        for delta in (-0.8, -0.4, 0.4, 0.8):
+            seed = home.copy()
+            seed[roll] = np.clip(seed[roll] + delta, body.kin.lower[roll], body.kin.upper[roll])
+            seeds.append(seed)
+    sols = [body.kin.ik_batch(local, seed, down_in_base(arm))[:2] for seed in seeds]
+    Q = np.concatenate([q for q, _ in sols])
+    ok = np.concatenate([k for _, k in sols])
+    return _solved(cell, arm, body, np.tile(mine, (len(seeds), 1)), Q, ok, "grid points of its share")
+
+
+def _planes_between(regions, names):
+    """{(i, j): (normal (2,), offset mm)}: the plane between arm i's share
+    and arm j's, from i's side (distance n . p - offset, >= 0 on i's side)."""
+    plane_of = {}
+    for i, (planes, _, others) in enumerate(regions):
+        for (nrm, off), other in zip(planes, others):
+            if other in names:
+                plane_of[i, names.index(other)] = (np.asarray(nrm, dtype=float)[:2], float(off))
+    return plane_of
+
+
+def _to_share(grid, P, i):
+    """Horizontal distance (m) from points P to the grid points of share i."""
+    Q = grid.flat[grid.flat_owner == i]
+    out = np.full(len(P), np.inf)
+    for k in range(0, len(P) if len(Q) else 0, 256):
+        out[k:k + 256] = np.linalg.norm(P[k:k + 256, None, :2] - Q[None], axis=2).min(axis=1)
+    return out
+
+
+def _facing_side(s, own, grid, plane, site, other_site, other, band):
+    """One arm's side of a pair (:func:`seam_zones_mm`): the protrusions of
+    its sampled poses ``s`` towards the other arm (m, :func:`_protrusion`
+    along the normal of ``plane`` (normal, offset mm; None: along the line
+    between the bases ``site`` -> ``other_site``)), which poses count (on
+    its own share, ``own``; with the nozzle no farther from the plane than
+    its base) and their distance (m) to share ``other``."""
+    if plane is not None:
+        nrm, off = plane
+        u = -nrm / np.linalg.norm(nrm)
+        # a pose with the nozzle farther from the plane than the arm's
+        # own base has the (fixed) base between the nozzle and the
+        # plane: the base does not come nearer, whatever the pose
+        front = s.tips[:, :2] * 1000.0 @ nrm - off <= site * 1000.0 @ nrm - off
+    else:
+        u = (other_site - site) / np.linalg.norm(other_site - site)
+        front = np.ones(len(own), dtype=bool)
+    mine = own & front
+    d = np.full(len(mine), np.inf)
+    d[mine] = _to_share(grid, s.tips[mine], other)
+    return _protrusion(s, band, u), mine, d
 
 
 #: arms whose seam's normal is more than this off the line between their
