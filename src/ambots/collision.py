@@ -625,6 +625,7 @@ def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n
     parts narrower than the zone (a 20 mm tower) no sampled pair is far
     enough apart to tell, and the clearance would only say how far apart
     they can get."""
+    from ambots.partition import arm_sites_mm
     arms = list(cell.arms if arms is None else arms)
     names = [a.name for a in arms]
     if pairs is None:
@@ -638,12 +639,8 @@ def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n
         grid = _part_shares(names, parts, part_spacing)
     tips, owner = _share_tips(grid, n_heights)
     used = sorted({x for pair in pairs for x in pair}, key=names.index)
-    sampled, own = {}, {}
-    for name in used:
-        i = names.index(name)
-        sampled[name] = _sample_share(cell, arms[i], tips[owner == i])        # poses on its own share only
-        own[name] = np.full(len(sampled[name].tips), i)
-    from ambots.partition import arm_sites_mm
+    # poses on each arm's own share only
+    sampled = {name: _sample_share(cell, arms[names.index(name)], tips[owner == names.index(name)]) for name in used}
     sites = dict(zip(names, arm_sites_mm(cell, arms) / 1000.0))
     plane_of = _planes_between(grid.regions, names)
     out = {}
@@ -651,8 +648,8 @@ def seam_zones_mm(cell, arms=None, pairs=None, margin_mm=10.0, band=0.35, n=9, n
         ia, ib = names.index(a), names.index(b)
         near = []
         for x, ix, other in ((a, ia, ib), (b, ib, ia)):
-            protrusion, mine, d = _facing_side(sampled[x], own[x] == ix, grid, plane_of.get((ix, other)),
-                                               sites[x], sites[names[other]], other, band)
+            protrusion, mine, d = _facing_side(sampled[x], grid, plane_of.get((ix, other)), sites[x],
+                                               sites[names[other]], other, band)
             near.append((protrusion, mine & (d <= window)))
         z = margin_mm + sum(float(p[k].max()) * 1000.0 if k.any() else 0.0 for p, k in near)
         out[a, b] = out[b, a] = z
@@ -790,13 +787,13 @@ def _to_share(grid, P, i):
     return out
 
 
-def _facing_side(s, own, grid, plane, site, other_site, other, band):
+def _facing_side(s, grid, plane, site, other_site, other, band):
     """One arm's side of a pair (:func:`seam_zones_mm`): the protrusions of
-    its sampled poses ``s`` towards the other arm (m, :func:`_protrusion`
-    along the normal of ``plane`` (normal, offset mm; None: along the line
-    between the bases ``site`` -> ``other_site``)), which poses count (on
-    its own share, ``own``; with the nozzle no farther from the plane than
-    its base) and their distance (m) to share ``other``."""
+    its sampled poses ``s`` (on its own share) towards the other arm (m,
+    :func:`_protrusion` along the normal of ``plane`` (normal, offset mm;
+    None: along the line between the bases ``site`` -> ``other_site``)),
+    which poses count (the nozzle no farther from the plane than the base)
+    and their distance (m) to share ``other``."""
     if plane is not None:
         nrm, off = plane
         u = -nrm / np.linalg.norm(nrm)
@@ -806,11 +803,10 @@ def _facing_side(s, own, grid, plane, site, other_site, other, band):
         front = s.tips[:, :2] * 1000.0 @ nrm - off <= site * 1000.0 @ nrm - off
     else:
         u = (other_site - site) / np.linalg.norm(other_site - site)
-        front = np.ones(len(own), dtype=bool)
-    mine = own & front
-    d = np.full(len(mine), np.inf)
-    d[mine] = _to_share(grid, s.tips[mine], other)
-    return _protrusion(s, band, u), mine, d
+        front = np.ones(len(s.tips), dtype=bool)
+    d = np.full(len(front), np.inf)
+    d[front] = _to_share(grid, s.tips[front], other)
+    return _protrusion(s, band, u), front, d
 
 
 #: arms whose seam's normal is more than this off the line between their
