@@ -167,11 +167,12 @@ def _row(label, cell, path, simulate_runs):
             motion = check_motion(res, cell)
             hits = motion["collisions"]
             around = sum(r.stats.plans.get("ompl", 0) for r in res.runners.values())
-            print("    simulated (%s): makespan %.0f s (estimate %.0f s), %s, contacts %d (%s), closest %.1f mm, "
+            closest = motion["min_clearance_mm"]          # None: one arm, no two arms to measure
+            print("    simulated (%s): makespan %.0f s (estimate %.0f s), %s, contacts %d (%s), closest %s, "
                   "joint moves planned around the bed %d; %.0f s wall"
                   % (tag, res.makespan_s, chosen.makespan_s, "finished" if res.finished else "NOT finished",
                      sum(hits.values()), ", ".join("%s %d" % kv for kv in sorted(hits.items())),
-                     motion["min_clearance_mm"], around, time.perf_counter() - t1), flush=True)
+                     "-" if closest is None else "%.1f mm" % closest, around, time.perf_counter() - t1), flush=True)
     return ratio(chosen), ratio(together)
 
 

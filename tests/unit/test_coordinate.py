@@ -386,9 +386,16 @@ def test_n_arm_programs_keep_every_pair_a_zone_apart_whatever_the_timing(n_arm_j
     arms = [p.arm for p in parts]
     planes = seam_planes(parts)
     read = {a.name: read_sliced(sliced[a.name], a.name) for a in arms}
-    adjacent = adjacent_arms(arms, read, planes, zones)
-    spans = execute(programs, random.Random(seed), home_positions_mm(c, arms))
-    counts, slack = closest_across(spans, planes, zones, park_positions_mm(c, arms))
+    assert_zones_kept(programs, c, arms, planes, zones, adjacent_arms(arms, read, planes, zones), seed)
+
+
+def assert_zones_kept(programs, cell, arms, planes, zones, adjacent, seed):
+    """``programs`` executed with random durations (:func:`execute`, seeded):
+    every two adjacent arms keep their nozzles the zone apart across their
+    plane (and come near it at least once), and at the busiest moment more
+    than one arm prints."""
+    spans = execute(programs, random.Random(seed), home_positions_mm(cell, arms))
+    counts, slack = closest_across(spans, planes, zones, park_positions_mm(cell, arms))
     pairs = [(a.name, b.name) for i, a in enumerate(arms) for b in arms[i + 1:] if b.name in adjacent[a.name]]
     assert pairs and all(counts[p] > 0 for p in pairs)
     for p in pairs:

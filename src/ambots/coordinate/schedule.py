@@ -61,10 +61,15 @@ class Schedule:
     ``seams``: the arms' planes and zones (:class:`~ambots.coordinate.
     timeline.Seams`); ``chunks``: {(arm, layer): [(pieces, closest distance
     to each plane, level)]}; ``priority``: an arm leaves alone what an
-    adjacent arm of higher rank still has to print within the zone."""
+    adjacent arm of higher rank still has to print within the zone;
+    ``order``: {(arm, layer): {chunk index: rank}} (:func:`~ambots.
+    coordinate.lookahead.layer_orders`): a free arm starts the chunk of
+    least rank that nobody is in the way of, and a chunk started from the
+    part ends at its point clearest of the seams (:meth:`_runs`)."""
 
-    def __init__(self, seams, chunks, home, park, n_layers, priority):
+    def __init__(self, seams, chunks, home, park, n_layers, priority, order=None):
         self.seams, self.chunks, self.park, self.n_layers, self.priority = seams, chunks, park, n_layers, priority
+        self.order = order
         names = self.names = seams.names
         self.acts = {n: [] for n in names}
         self.pos = {n: np.asarray(home[n], dtype=float) for n in names}           # where the nozzle waits
@@ -231,17 +236,38 @@ class Schedule:
         ok = [c for c in self.candidates(n, t) if not c[2] and not (self.priority and self.before(n, c[1]))]
         if not ok:
             return False
-        ci, fp, _, _ = min(ok, key=lambda c: c[3])
+        rank = {} if self.order is None else self.order.get((n, self.layer_of[n]), {})
+        ci, fp, _, _ = min(ok, key=lambda c: (rank.get(c[0], 0), c[3]))
         ps, _, _ = self.chunks[n, self.layer_of[n]][ci]
         here = None if self.first[n] or self.parked[n] else self.pos[n]
         z = None if here is not None else self._joint_d(n, self.layer_of[n], ci, self.first[n])[1]
-        segs = _order_runs(ps, None if here is None else tuple(here))
+        segs = self._runs(n, ps, here)
         dur = _path_time(here, segs)
         self.left[n].remove(ci)
         self.start(n, Act("chunk", self.layer_of[n], t, t + dur, fp, segs, z=z), segs[-1].end, False)
         if not self.left[n]:
             self.layer_end[n, self.layer_of[n]] = t + dur
         return True
+
+    def _runs(self, n, ps, here):
+        """A chunk's pieces in the order printed from ``here`` (None: from
+        home or the park position; :func:`~ambots.coordinate.steps._order_runs`).
+        With an ``order``, a chunk started from the part ends where it is
+        clearest of the seams (:meth:`~ambots.coordinate.timeline.Seams.
+        clearance`) when the order from ``here`` does not: the runs are
+        ordered from that point and printed backwards, so that the arm then
+        waits, and travels to its next chunk, away from its neighbours'
+        work.  (Session 24, the four-arm plate with one chunk band per
+        seam and the look-ahead order: 19,285 s without, 17,070 s with.)"""
+        segs = _order_runs(ps, None if here is None else tuple(here))
+        if self.order is None or here is None or len(segs) < 2:
+            return segs
+        pts = np.array([p.start for p in segs] + [p.end for p in segs], dtype=float)
+        clear = self.seams.clearance(n, pts)
+        back = _order_runs(ps, tuple(pts[int(np.argmax(clear))]))
+        back = [p._replace(start=p.end, end=p.start) for p in reversed(back)]
+        ends = self.seams.clearance(n, np.array([segs[-1].end, back[-1].end], dtype=float))
+        return back if ends[1] > ends[0] + 1e-6 else segs
 
     def in_the_way(self, n, t, waiting):
         """Arms standing still (waiting too) in the way of one of arm n's chunks."""

@@ -10,10 +10,11 @@ import bisect
 import numpy as np
 
 from ambots.coordinate.emit import ArmProgram, Emitter, resolve_waits
+from ambots.coordinate.lookahead import layer_orders
 from ambots.coordinate.schedule import Schedule
 from ambots.coordinate.steps import Step, Wait, close, cut_segment
 
-__all__ = ["timeline_programs", "Seams"]
+__all__ = ["timeline_programs", "Seams", "SCHEDULES"]
 
 #: the last schedule :func:`timeline_programs` made ({arm: [Act]}), for inspection
 _last_schedule = None
@@ -26,7 +27,13 @@ _last_schedule = None
 ROUNDING_MM = 0.001
 
 
-def timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4, priority_only=False,
+#: the schedules :func:`timeline_programs` makes, the shortest kept: the
+#: greedy one with the cell's order as priorities, without, and with the
+#: look-ahead order (:func:`~ambots.coordinate.lookahead.layer_orders`)
+SCHEDULES = ("priority", "greedy", "lookahead")
+
+
+def timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4, kinds=SCHEDULES,
                       moves=None):
     """Any adjacency (an odd cycle of adjacent arms: three or more around a point).
 
@@ -46,10 +53,14 @@ def timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent,
     printable height).  A layer starts when the adjacent arms have finished the previous one.  An
     arm with nothing to do that stands in another's way (or when nobody can
     go on) retreats to its park position.  The schedule is made
-    twice, once with the arms' priorities (an arm leaves alone what an
-    adjacent arm earlier in the cell's list, later on odd layers, still has
-    to print within the zone, so that arm sweeps away from their seam and
-    this one follows), once without, and the shorter is kept.
+    three times (``kinds``, :data:`SCHEDULES`): with the arms' priorities
+    (an arm leaves alone what an adjacent arm earlier in the cell's list,
+    later on odd layers, still has to print within the zone, so that arm
+    sweeps away from their seam and this one follows), without, and in the
+    look-ahead order (each layer's chunks ordered by a search over the
+    layer as a scheduling problem, :mod:`~ambots.coordinate.lookahead`;
+    a chunk then ends at its point clearest of the seams); the shortest
+    (by its own estimated durations) is kept, the first on a tie.
 
     The order becomes barriers (:func:`_barriers`): before each step an
     arm waits, for every adjacent arm, for the last of that arm's steps
@@ -63,9 +74,14 @@ def timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent,
     global _last_schedule
     seams = Seams(arms, read, planes, zones, adjacent, moves)
     chunks = _chunks(seams, read, n_layers, bands)
-    # the cell's order as priorities or none: keep the shorter schedule
-    acts = min((Schedule(seams, chunks, home, park, n_layers, p).run()
-                for p in (True, False) if p or not priority_only),
+    unknown = set(kinds) - set(SCHEDULES)
+    if unknown or not kinds:
+        raise ValueError("timeline_programs: kinds must be some of %s, got %r" % (", ".join(SCHEDULES), kinds))
+    made = {"priority": lambda: Schedule(seams, chunks, home, park, n_layers, True),
+            "greedy": lambda: Schedule(seams, chunks, home, park, n_layers, False),
+            "lookahead": lambda: Schedule(seams, chunks, home, park, n_layers, False,
+                                          order=layer_orders(seams, chunks, n_layers)[0])}
+    acts = min((made[k]().run() for k in SCHEDULES if k in kinds),
                key=lambda acts: max((a[-1].C for a in acts.values() if a), default=0.0))
     _last_schedule = acts
     arm_of = {a.name: a for a in arms}
@@ -114,6 +130,15 @@ class Seams:
         d = np.asarray(pts, dtype=float).reshape(-1, 3) @ self.N[n].T - self.O[n]
         d[(d < 0.0) & (d > -ROUNDING_MM)] = 0.0
         return d
+
+    def clearance(self, n, pts):
+        """How clear of arm n's seams each point is (K,): its smallest
+        distance to a plane as a share of that pair's zone, at most 1 (1:
+        clear of every zone; 1 for an arm without adjacent arms)."""
+        d = self.dist(n, pts)
+        if not d.shape[1]:
+            return np.ones(len(d))
+        return np.minimum(d / self.Z[n], 1.0).min(axis=1)
 
     def path_d(self, n, a, b, park=False):
         """Closest distance to each adjacent arm's plane on arm n's joint move
