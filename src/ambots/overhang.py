@@ -25,7 +25,11 @@ slicer wrote it, with or without support), by the rule of issue
   ``bridge_max_mm`` and has supported points at both ends counts as
   supported; the pieces of one line that coordination cut (where two
   arms' or two bands' work meets: one ends where the next begins, and no
-  third path ends there) are one path for this;
+  third path ends there) are one path for this, and so is a piece that
+  ends on a vertex of another path where that path runs on in line with
+  it (its other part, which turns there along a band edge): that path's
+  stretch beyond the vertex spans the gap with it, counted once, in its
+  own path;
 * the **unsupported share** is the unsupported extruded length over the
   whole extruded length.
 
@@ -132,7 +136,7 @@ class _Below:
 
 def _sample(path, step_mm):
     """Sample points of one path ((m, 2, 3) array of segments, mm): (n, 2)
-    xy, (n,) weights (mm of path each)."""
+    xy, (n,) weights (mm of path each), (n,) the segment of each."""
     seg = path
     a, b = seg[:, 0, :2], seg[:, 1, :2]
     length = np.hypot(*(b - a).T)
@@ -143,7 +147,7 @@ def _sample(path, step_mm):
     j = np.arange(len(idx)) - np.repeat(first, k)
     f = (j + 0.5) / k[idx]
     pts = a[idx] + (b[idx] - a[idx]) * f[:, None]
-    return pts, (length / k)[idx]
+    return pts, (length / k)[idx], idx
 
 
 def _bridged(supported, weights, path_id, bridge_max_mm):
@@ -263,19 +267,20 @@ def _levels(level, heights, slab, run, rule):
             del carries[j]                  # below every later window
         under = [r for j, r in carries.items() if heights[j] <= heights[k] - 0.25 * h + _Z_TOL]
         if heights[k] < heights[0] + 0.25 * h:          # on the bed
-            for _, w in samples:
+            for _, w, _ in samples:
                 total += float(w.sum())
         else:
-            samples, pid = _chained(members, samples)
-            pts = np.concatenate([s for s, _ in samples])
-            w = np.concatenate([w for _, w in samples])
+            samples, pid = _chained(members, samples, bridge_max_mm)
+            pts = np.concatenate([s for s, _, _ in samples])
+            w = np.concatenate([w for _, w, _ in samples])
+            own = ~np.concatenate([c for _, _, c in samples])      # context samples: counted in their own path
             hit = np.zeros(len(pts), dtype=bool)
             for r in under:
                 hit[~hit] = r.near(pts[~hit])
             ok = _bridged(hit, w, pid, bridge_max_mm)
-            total += float(w.sum())
-            lost = float(w[~ok].sum())
-            bridged += float(w[ok & ~hit].sum())
+            total += float(w[own].sum())
+            lost = float(w[own & ~ok].sum())
+            bridged += float(w[own & ok & ~hit].sum())
             if lost > 0:
                 lost_by_slab[int(slab[k])] = lost_by_slab.get(int(slab[k]), 0.0) + lost
             unsupported += lost
@@ -284,12 +289,20 @@ def _levels(level, heights, slab, run, rule):
     return total, unsupported, bridged, lost_by_slab
 
 
-def _chained(members, samples):
+def _chained(members, samples, reach_mm=0.0):
     """One layer's paths joined where two of them meet end to end and no
     third path ends there: the pieces of one line that coordination cut
     (where two arms' or two bands' work meets) are one path again for the
-    bridge rule.  Returns the samples in chain order (a piece walked
-    backwards has its samples reversed) and the chain id of every sample."""
+    bridge rule.  Where a path ends on a vertex of another path that runs
+    on in line with it (the same line, cut where one band's work meets
+    another's that turns along the band edge there,
+    :func:`ambots.coordinate.banded._edge_links`), up to ``reach_mm`` of
+    that other path's samples beyond the vertex are put next to it as
+    context: they count for the bridge rule, not as this path's extrusion.
+    ``samples``: (points, weights, segment of each) per path
+    (:func:`_sample`).  Returns the samples in chain order as (points,
+    weights, context flags) (a piece walked backwards has its samples
+    reversed) and the chain id of every sample."""
     ends = {}
     key = lambda xy: (round(xy[0], 3), round(xy[1], 3))
     for i, p in enumerate(members):
@@ -301,8 +314,10 @@ def _chained(members, samples):
     for at in ends.values():
         if len(at) == 2 and at[0][0] != at[1][0]:
             link[at[0]], link[at[1]] = at[1], at[0]
+    context = _in_line(members, samples, {at[0]: pt for pt, at in ends.items() if len(at) == 1}, reach_mm)
     seen = np.zeros(len(members), bool)
     out, pid = [], []
+    none = lambda n: np.zeros(n, dtype=bool)
     # chains from a free end first, then what is left (closed rings of pieces)
     order = [i for i in range(len(members)) if (i, 0) not in link or (i, 1) not in link] + list(range(len(members)))
     for start in order:
@@ -311,17 +326,70 @@ def _chained(members, samples):
         chain = 0 if not pid else pid[-1][0] + 1
         # from a free head forwards, from a free tail backwards (a ring: either way)
         i, forward = start, not ((start, 0) in link and (start, 1) not in link)
+        head = context.get((start, 0 if forward else 1))
+        if head is not None:                       # the line before the head, ending next to it
+            out.append((head[0][::-1], head[1][::-1], ~none(len(head[1]))))
+            pid.append((chain, len(head[1])))
         while i is not None and not seen[i]:
             seen[i] = True
-            s, w = samples[i]
-            out.append((s, w) if forward else (s[::-1], w[::-1]))
+            pts, w, _ = samples[i]
+            out.append((pts, w, none(len(w))) if forward else (pts[::-1], w[::-1], none(len(w))))
             pid.append((chain, len(w)))
             nxt = link.get((i, 1 if forward else 0))
             if nxt is None:
+                tail = context.get((i, 1 if forward else 0))
+                if tail is not None:
+                    out.append((tail[0], tail[1], ~none(len(tail[1]))))
+                    pid.append((chain, len(tail[1])))
                 break
             i, forward = nxt[0], nxt[1] == 0
     ids = np.repeat([c for c, _ in pid], [n for _, n in pid])
     return out, ids
+
+
+def _in_line(members, samples, lone, reach_mm):
+    """{(path, end): (points, weights)}: for each free end of ``lone``
+    ({(path, end): its point key}) that lies on an inner vertex of another
+    path whose segment on one side of it runs on in line with the end's
+    segment (on the far side of the vertex), that other path's samples
+    from the vertex outwards, at most ``reach_mm`` of them (and one more)."""
+    out = {}
+    if not lone or reach_mm <= 0:
+        return out
+    code = lambda xy: np.round(np.asarray(xy, float) * 1000.0).astype(np.int64) @ np.array([1 << 32, 1])
+    want = {}
+    for (i, e), pt in lone.items():
+        want.setdefault(int(code(pt)), []).append((i, e))
+    sizes = np.array([len(p) for p in members])
+    if not (sizes > 1).any():
+        return out
+    inner = np.concatenate([p[1:, 0, :2] for p in members if len(p) > 1])   # vertex v: where segment v starts
+    owner = np.repeat(np.arange(len(members)), np.maximum(sizes - 1, 0))
+    vertex = np.arange(len(inner)) - np.repeat(np.cumsum(np.maximum(sizes - 1, 0)) - np.maximum(sizes - 1, 0),
+                                               np.maximum(sizes - 1, 0)) + 1
+    codes = code(inner)
+    for k in np.flatnonzero(np.isin(codes, np.array(list(want), dtype=np.int64))).tolist():
+        j, v, p = int(owner[k]), int(vertex[k]), members[int(owner[k])]
+        for i, e in want[int(codes[k])]:
+            if i == j or (i, e) in out:
+                continue
+            seg = members[i][-1] if e == 1 else members[i][0]
+            P = p[v][0][:2]
+            u = (seg[0] if e == 1 else seg[1])[:2] - P       # along the end's segment, away from P
+            nu = math.hypot(*u)
+            if nu <= 0:
+                continue
+            pts, w, idx = samples[j]
+            cut = int(np.searchsorted(idx, v))
+            for far, side in ((p[v - 1][0][:2], slice(cut - 1, None, -1) if cut else slice(0, 0)),
+                              (p[v][1][:2], slice(cut, None))):
+                q = far - P
+                if abs(u[0] * q[1] - u[1] * q[0]) <= (2e-3 + 1e-4 * math.hypot(*q)) * nu and float(u @ q) < 0:
+                    sp, sw = pts[side], w[side]
+                    n = int(np.searchsorted(np.cumsum(sw), reach_mm)) + 1
+                    out[i, e] = (sp[:n], sw[:n])
+                    break
+    return out
 
 
 def nominal_layer_height(z):

@@ -81,7 +81,7 @@ def corners(tmp_path_factory):
     arms = [p.arm for p in parts]
     read = {a.name: read_sliced(sliced[a.name], a.name) for a in arms}
     planes, zones = seam_planes(parts), seam_zones_for(cell, arms, parts)
-    n_layers = max(max(layers) + 1 for _, layers in read.values())
+    n_layers = max(max(layers) + 1 for layers in (r.layers for r in read.values()))
     return cell, arms, read, planes, zones, adjacent_arms(arms, read, planes, zones), n_layers
 
 

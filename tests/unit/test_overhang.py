@@ -186,6 +186,37 @@ def test_a_line_cut_into_pieces_is_one_path_for_the_bridge_rule():
     assert long_cut["unsupported_mm"] == pytest.approx(20 - 2 * W, abs=0.3)
 
 
+def test_a_piece_ending_where_the_rest_of_its_line_turns_is_one_path_for_the_bridge_rule():
+    """Where a band edge cuts a line and one band's path turns along the edge
+    at the cut (a link, ``ambots.coordinate.banded``), the other band's
+    piece ends on a vertex of that path, not on its end: the piece and the
+    line running on in line beyond the vertex still span the gap as one
+    bridge; the other path's samples are not counted twice."""
+    below = [[(0, 0), (5, 0)], [(13, 0), (18, 0)], [(0, 3), (5, 3)]]
+    # one program: the line y = 0 from x = 0 to the edge x = 8, along the edge, back along y = 3;
+    # the other: the rest of the line y = 0, from x = 18 back to the edge
+    turned = measure(gcode((0.2, below), (0.4, [[(0, 0), (8, 0), (8, 3), (0, 3)]])),
+                     gcode((0.4, [[(18, 0), (8, 0)]])))
+    assert turned["extruded_mm"] == pytest.approx(15.0 + 18.0 + 3.0 + 8.0, abs=1e-6)      # the pillars on the bed too
+    assert turned["unsupported_mm"] == 0.0
+    # in the air: x = 5 + W .. 13 - W on y = 0, the link, x = 8 .. 5 + W on y = 3
+    air = (13 - 5 - 2 * W) + 3.0 + (8 - 5 - W)
+    assert turned["bridged_mm"] == pytest.approx(air, abs=0.3)
+    # not in line (the piece meets the vertex at a right angle): its 4.55 mm from the pillar
+    # at x = 13 to its end are not a bridge
+    corner = measure(gcode((0.2, below), (0.4, [[(0, 0), (8, 0), (8, 3), (0, 3)]])),
+                     gcode((0.4, [[(8, 10), (8, 0)]])))
+    assert corner["unsupported_mm"] == pytest.approx(10.0, abs=0.3)
+    apart = measure(gcode((0.2, below), (0.4, [[(0, 0), (8, 0), (8, 3), (0, 3)]])),
+                    gcode((0.4, [[(18, 0), (8.5, 0)]])))            # ends short of the vertex: no bridge
+    assert apart["unsupported_mm"] == pytest.approx(13 - W - 8.5, abs=0.3)
+    # a gap too long to bridge stays unsupported in line too
+    far = [[(0, 0), (5, 0)], [(25, 0), (30, 0)], [(0, 3), (5, 3)]]
+    long_cut = measure(gcode((0.2, far), (0.4, [[(0, 0), (15, 0), (15, 3), (0, 3)]])),
+                       gcode((0.4, [[(30, 0), (15, 0)]])))
+    assert long_cut["unsupported_mm"] == pytest.approx((25 - W - 15) + (15 - 5 - W) + 3.0 + (15 - 5 - W), abs=0.3)
+
+
 def test_layer_ranges():
     assert layer_ranges([9, 3, 4, 5]) == "3-5, 9"
     assert layer_ranges(range(1, 40, 2), limit=3) == "1, 3, 5, ... (17 more)"

@@ -112,7 +112,7 @@ def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=No
     idle = [a for a in idle if a.name not in {b.name for b in arms}]
     park = park or park_positions_mm(cell, arms + idle)
     read = {a.name: _read(sliced[a.name], "%s.gcode" % a.name) for a in arms}
-    n_layers = max([max(layers) + 1 for _, layers in read.values() if layers] or [0])
+    n_layers = max([max(layers) + 1 for layers in (r.layers for r in read.values()) if layers] or [0])
     if mode == "sequential" or (len(arms) == 1 and idle):
         return sequential_programs(arms, read, park, idle, mode, moves=JointMoves(cell, arms), slab_mm=slab_mm)
     planes = seam_planes(parts)

@@ -14,6 +14,7 @@
   arm's lines.
 
 Units: mm and mm/min in the bed frame, as the G-code."""
+import re
 from dataclasses import dataclass, field
 from typing import Dict, List, NamedTuple, Optional
 
@@ -22,14 +23,72 @@ import numpy as np
 from ambots.gcode import Segment, parse_gcode_text
 from ambots.program import sanitize_gcode
 
-__all__ = ["Sliced", "read_sliced", "Wait", "Step", "END", "cut_segment", "seg_time", "seg_times"]
+__all__ = ["Sliced", "Features", "read_sliced", "Wait", "Step", "END", "cut_segment", "seg_time", "seg_times"]
 
 
 class Sliced(NamedTuple):
     """One part's sliced G-code, read: ``removed`` the (line, text) stripped
-    from it (A-series lines), ``layers`` {layer: [Segment]}."""
+    from it (A-series lines), ``layers`` {layer: [Segment]}, ``features``
+    the slicer's ``;TYPE:`` comments (:class:`Features`)."""
     removed: list
     layers: Dict[int, List[Segment]]
+    features: Optional["Features"] = None
+
+
+#: line breaks of str.splitlines other than "\n"
+_ODD_BREAKS = re.compile("[\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]")
+
+
+class Features:
+    """The feature (``;TYPE:`` comment: ``Internal infill``, ``Perimeter``,
+    ...) each line of a G-code text belongs to: the last one written before
+    it (None before the first)."""
+
+    def __init__(self, text):
+        starts, names = [], []
+        if _ODD_BREAKS.search(text):         # lines as str.splitlines counts them (the parser's)
+            for i, ln in enumerate(text.splitlines(), 1):
+                k = ln.find(";TYPE:")
+                if k >= 0:
+                    starts.append(i)
+                    names.append(ln[k + 6:].strip())
+            self.starts, self.names = np.array(starts, dtype=np.int64), names
+            return
+        line, pos = 1, 0
+        while True:
+            k = text.find(";TYPE:", pos)
+            if k < 0:
+                break
+            line += text.count("\n", pos, k)
+            end = text.find("\n", k)
+            names.append(text[k + 6:end if end >= 0 else len(text)].strip())
+            starts.append(line)
+            pos = k
+            if end < 0:
+                break
+            pos = k + 1
+        self.starts = np.array(starts, dtype=np.int64)
+        self.names = names
+
+    def __eq__(self, other):
+        return (isinstance(other, Features) and np.array_equal(self.starts, other.starts)
+                and self.names == other.names)
+
+    def __repr__(self):
+        return "Features(%d)" % len(self.names)
+
+    def of(self, line):
+        """The feature of G-code line ``line`` (1-based), or None."""
+        i = int(np.searchsorted(self.starts, line, side="right")) - 1
+        return self.names[i] if i >= 0 else None
+
+    def infill(self, line):
+        """Whether line ``line`` is infill laid on the layer below (a
+        feature whose name says infill: the built-in slicer's and
+        PrusaSlicer's sparse, solid and top solid infill; not bridge infill,
+        which spans a gap)."""
+        name = (self.of(line) or "").lower()
+        return "infill" in name and "bridge" not in name
 
 
 def read_sliced(text, path):
@@ -40,13 +99,13 @@ def read_sliced(text, path):
     no A-series line to strip)."""
     layers = getattr(text, "layers", None)
     if layers is not None:
-        return Sliced([], {k: list(v) for k, v in layers.items()})
+        return Sliced([], {k: list(v) for k, v in layers.items()}, Features(text))
     clean, removed = sanitize_gcode(text, path, trusted=False, mode="strip")
     layers: Dict[int, List[Segment]] = {}
     for ev in parse_gcode_text(clean, path):
         if type(ev) is Segment:
             layers.setdefault(max(ev.layer, 0), []).append(ev)
-    return Sliced(removed, layers)
+    return Sliced(removed, layers, Features(clean))
 
 
 def close(a, b, atol=1e-8):
