@@ -172,3 +172,27 @@ def test_a_scheduled_plan_keeps_its_fastest_chunk_bands(tmp_path):
     assert kept <= min(times.values()) + 1e-6, (kept, times)
     assert times[bands.pop()] == pytest.approx(kept, abs=1e-6)
     assert max(times.values()) > min(times.values()) * 1.001, times
+
+
+def test_a_job_is_planned_with_fewer_collections_and_the_collector_is_restored(tmp_path, monkeypatch):
+    """run_job and write_job raise the collector's first threshold to
+    GC_THRESHOLD while they work, and put it back after, also when the job
+    fails."""
+    import gc
+    import trimesh
+    from ambots import job as J
+    cell = load_cell(default_cell_path())
+    path = str(tmp_path / "cube.stl")
+    trimesh.creation.box((20.0, 20.0, 2.0)).apply_translation((0, 0, 1.0)).export(path)
+    seen = []
+    real = J._plan_job
+    monkeypatch.setattr(J, "_plan_job", lambda *a, **k: seen.append(gc.get_threshold()) or real(*a, **k))
+    before = gc.get_threshold()
+    job = J.run_job(path, cell, [cell.arms[0]])
+    assert seen and seen[0][0] == max(before[0], J.GC_THRESHOLD) and seen[0][1:] == before[1:]
+    assert gc.get_threshold() == before
+    J.write_job(job, str(tmp_path / "out"))
+    assert gc.get_threshold() == before
+    with pytest.raises(Exception):
+        J.run_job(str(tmp_path / "missing.stl"), cell)
+    assert gc.get_threshold() == before
