@@ -19,11 +19,11 @@ CLEAR_MM = 5.0
 
 def home_positions_mm(cell, arms):
     """Each arm's nozzle at its home pose, in bed-frame mm."""
-    from ambots.model import arm_kinematics
+    from ambots.kinematics import shared_arm_kinematics
     inv = np.linalg.inv(cell.bed.pose)
     out = {}
     for arm in arms:
-        T = arm.base_pose @ arm_kinematics(arm).fk(np.asarray(arm.profile.home))
+        T = arm.base_pose @ shared_arm_kinematics(arm).fk(np.asarray(arm.profile.home))
         out[arm.name] = (inv[:3, :3] @ T[:3, 3] + inv[:3, 3]) * 1000.0
     return out
 
@@ -42,7 +42,7 @@ def park_positions_mm(cell, arms, margin_mm=60.0):
     cannot reach that point with the nozzle down, points nearer to its base
     (or up to 30 mm nearer the bed) and higher are tried; an arm whose base
     stands over the bed, or that reaches none of them, parks at home."""
-    from ambots.model import arm_kinematics
+    from ambots.kinematics import shared_arm_kinematics
     from ambots.partition import arm_sites_mm
     from ambots.workspace import down_in_base, world_to_base
     arms = list(arms)
@@ -74,7 +74,7 @@ def park_positions_mm(cell, arms, margin_mm=60.0):
             continue
         P = np.array(cands)
         world = (P / 1000.0) @ cell.bed.pose[:3, :3].T + cell.bed.pose[:3, 3]
-        _, ok, _ = arm_kinematics(arm).ik_batch(world_to_base(arm, world), np.asarray(arm.profile.home),
+        _, ok, _ = shared_arm_kinematics(arm).ik_batch(world_to_base(arm, world), np.asarray(arm.profile.home),
                                                 down_in_base(arm))
         if ok.any():
             out[arm.name] = P[int(np.argmax(ok))]
@@ -94,9 +94,9 @@ class JointMoves:
     below the printable height in the step's footprint."""
 
     def __init__(self, cell, arms, samples=32):
-        from ambots.model import arm_kinematics
+        from ambots.kinematics import shared_arm_kinematics
         self.arm = {a.name: a for a in arms}
-        self.kin = {a.name: arm_kinematics(a) for a in arms}
+        self.kin = {a.name: shared_arm_kinematics(a) for a in arms}   # read only
         self.bed = np.asarray(cell.bed.pose, dtype=float)
         self.top = cell.bed.max_height * 1000.0
         self.cell = cell
