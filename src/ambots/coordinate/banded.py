@@ -345,8 +345,8 @@ def _edge_links(layer_segs, pieces, src, planes, t, features):
     walls = None
     for prev, cur, i0, i1 in zip(pieces[:-1], pieces[1:], src[:-1], src[1:]):
         a, b = prev.end, cur.start
-        if (prev.extrude and cur.extrude and i1 > i0 and a != b and a[2] == b[2]
-                and math.hypot(a[0] - b[0], a[1] - b[1]) <= EDGE_LINK_MAX_MM
+        gap = math.hypot(a[0] - b[0], a[1] - b[1])
+        if (prev.extrude and cur.extrude and i1 > i0 and a != b and a[2] == b[2] and gap <= EDGE_LINK_MAX_MM
                 and _on_same_edge(a, b, planes, edges)
                 and all(layer_segs[j].extrude and layer_segs[j].start == layer_segs[j - 1].end
                         for j in range(i0 + 1, i1 + 1))
@@ -354,7 +354,6 @@ def _edge_links(layer_segs, pieces, src, planes, t, features):
             if walls is None:
                 ext = [s for s in layer_segs if s.extrude and s.start != s.end]
                 walls = np.array([[s.start[:2], s.end[:2]] for s in ext], dtype=float).reshape(-1, 2, 2)
-            gap = math.hypot(a[0] - b[0], a[1] - b[1])
             u = np.subtract(b[:2], a[:2]) * (1e-3 / gap)     # the lines that end there touch it at its ends
             if not crossing(np.array([a[:2]]) + u, np.array([b[:2]]) - u, walls)[0]:
                 length = math.dist(prev.start, prev.end)

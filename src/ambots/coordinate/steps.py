@@ -55,18 +55,14 @@ class Features:
             self.starts, self.names = np.array(starts, dtype=np.int64), names
             return
         line, pos = 1, 0
-        while True:
-            k = text.find(";TYPE:", pos)
-            if k < 0:
-                break
+        k = text.find(";TYPE:")
+        while k >= 0:
             line += text.count("\n", pos, k)
             end = text.find("\n", k)
             names.append(text[k + 6:end if end >= 0 else len(text)].strip())
             starts.append(line)
             pos = k
-            if end < 0:
-                break
-            pos = k + 1
+            k = text.find(";TYPE:", k + 1)
         self.starts = np.array(starts, dtype=np.int64)
         self.names = names
 
