@@ -39,7 +39,14 @@ The menu of the original design, same five choices in the same order::
   ``p``, ``s`` or ``r`` [arm] pauses (A2, end of line), stops (A12, brakes
   at once, resumable) or resumes (A6) every arm of the cell or the one named
   (:mod:`ambots.control`).  G-code not sent yet is sent
-  first.
+  first.  The first start of the programs sent names their chunk
+  (``A1 R<id> C<chunk>``: an arm starts a chunk once) and is recorded in
+  their directory (:data:`START_RECORD`); a front end started with
+  ``--follow DIR`` to replace a crashed one sends that start again, so a
+  start lost with the crashed front end (and a hub that had not yet
+  acknowledged it) is not lost for good; an arm that has started ignores
+  it.  A later 4 sends a plain A1, as the original did (a DONE arm runs
+  its program again).
 - 5, end of input (Ctrl-D) or Ctrl-C at the prompt: quit.
 
 A bad answer gets one line saying what is expected, then the menu again.
@@ -76,7 +83,7 @@ from ambots.protocol import (HUB, MAX_U32, Ack, ArmState, ErrorReport, LoadChunk
 from ambots.reliable import Receiver, Sender, seq_seed
 
 __all__ = ["CHOICES", "EXIT_OK", "EXIT_FAILED", "EXIT_BAD_INPUT", "Undelivered", "ReliableLink",
-           "JobTracker", "Menu", "program_file_names", "program_files", "load_programs", "build_parser",
+           "JobTracker", "Menu", "START_RECORD", "program_file_names", "program_files", "load_programs", "build_parser",
            "one_line"]
 
 #: the menu, in the original's order
@@ -92,6 +99,9 @@ EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 DEFAULT_TIMEOUT_BASE_S = 600.0
 #: how long the menu waits for the hub's acknowledgements before saying so (s)
 DEFAULT_ACK_TIMEOUT_S = 10.0
+#: in the programs' directory: the chunk id last sent and the arms given its A1
+#: (JSON), so a front end that replaces a crashed one can send that start again
+START_RECORD = "start.json"
 
 
 def print_timeout_s(print_time_s, speed=None):
@@ -454,6 +464,8 @@ class Menu:
         self.directory = None       # where the programs are on disk
         self.sent = False           # the hub acknowledged the current programs' A5s
         self._chunk_ids = itertools.count(int(time.time()))
+        self._chunk = None          # the chunk id of the programs sent
+        self._started = None        # the chunk id this front end has started
         self._backlog = []
         self.actions = {"1": self.demo, "2": self.ask_and_slice, "3": self.send, "4": self.start}
 
@@ -623,6 +635,8 @@ class Menu:
                 for n, p in self.programs.items()), directory))
         chunk = next(self._chunk_ids) % (MAX_U32 + 1)
         messages = [LoadChunk(p.arm.id, p.text, chunk_id=chunk) for p in self.programs.values()]
+        self._chunk = chunk
+        self._record_start([])          # programs being sent: no start of them yet
         for p, msg in zip(self.programs.values(), messages):      # all checked before any is sent
             self.link.send(msg)
             self.say("  %-14s A5 chunk C%d: %d lines, %d bytes" % (_label(p.arm) + ":", chunk, len(p.lines),
@@ -632,6 +646,24 @@ class Menu:
         if self.sent:
             self.say("the hub acknowledged the G-code of %s" % ", ".join(self.programs))
         return self.sent
+
+    def _record_start(self, arms):
+        """Write :data:`START_RECORD` in the programs' directory: the chunk id
+        sent and the arms given its A1 (``arms``), for a front end that
+        replaces this one (:meth:`attach`).  A directory that cannot be
+        written is said, and the job goes on without the record."""
+        if not self.directory:
+            return
+        path = os.path.join(self.directory, START_RECORD)
+        try:
+            tmp = path + ".tmp"
+            with open(tmp, "w") as f:
+                json.dump({"chunk": self._chunk, "started": arms,
+                           "arms": {p.arm.name: p.arm.id for p in self.programs.values()}}, f)
+            os.replace(tmp, path)
+        except OSError as exc:
+            self.complain("warning: could not record the start in %s (%s): a front end that replaces "
+                          "this one (--follow) cannot re-send it" % (path, exc.strerror or exc))
 
     def wait_for_hub(self, what, deadline=None):
         """Wait until the hub has acknowledged everything sent (keeping what
@@ -672,8 +704,14 @@ class Menu:
                 return False
         self._drop_statuses()
         first = [p for p in self.programs.values() if p.start_first]
+        # the first start of these programs names their chunk (an arm starts a chunk once, so a
+        # replacement front end may send it again); a later one, as in the original, runs a DONE
+        # arm again from the top
+        chunk = self._chunk if self._started != self._chunk else None
+        self._record_start([p.arm.name for p in first])
         for p in first:
-            self.link.send(Start(p.arm.id))
+            self.link.send(Start(p.arm.id, chunk_id=chunk))
+        self._started = self._chunk
         rest = [p for p in self.programs.values() if not p.start_first]
         self.say("A1 sent to %s%s" % (", ".join(_label(p.arm) for p in first),
                                       "; %s start when the arm before them is done" % ", ".join(
@@ -754,9 +792,10 @@ class Menu:
 
     def attach(self, directory, timeout=None):
         """Follow a job that is already running (started by another front
-        end, e.g. one that crashed), its programs in ``directory``; sends
-        nothing, so the print is not disturbed.  The exit status as
-        :meth:`print_job`."""
+        end, e.g. one that crashed), its programs in ``directory``.  It sends
+        only the start recorded there (:meth:`_restart`), which an arm that
+        has started ignores, so the print is not disturbed.  The exit status
+        as :meth:`print_job`."""
         try:
             self.programs, self.directory = load_programs(directory, self.cell), directory
         except (AmbotsError, OSError) as exc:
@@ -765,7 +804,32 @@ class Menu:
         self.sent = True
         self.say("attached to the job of %s in %s" % (", ".join(self.programs), directory))
         deadline = None if timeout is None else self.clock() + timeout
+        self._restart(directory)
         return EXIT_OK if self.follow(deadline, attach=True) else EXIT_FAILED
+
+    def _restart(self, directory):
+        """Send again the start that the front end this one replaces
+        recorded (:meth:`_record_start`), naming its chunk: an arm that has
+        started that chunk ignores it, and one whose start was lost with
+        that front end (and a hub that had not acknowledged it) starts now."""
+        path = os.path.join(directory, START_RECORD)
+        try:
+            with open(path) as f:
+                record = json.load(f)
+            chunk, started = int(record["chunk"]), [str(a) for a in record["started"]]
+        except FileNotFoundError:
+            return
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            self.complain("warning: %s is unreadable (%s): the start is not sent again" % (path, one_line(exc)))
+            return
+        arms = [self.programs[a].arm for a in started if a in self.programs]
+        if not arms:
+            return
+        for arm in arms:
+            self.link.send(Start(arm.id, chunk_id=chunk))
+        self.sent, self._chunk, self._started = True, chunk, chunk
+        self.say("A1 C%d sent again to %s (the start recorded in %s; an arm that has started chunk C%d "
+                 "ignores it)" % (chunk, ", ".join(_label(a) for a in arms), START_RECORD, chunk))
 
     # --- --print --------------------------------------------------------------------
 
@@ -836,7 +900,8 @@ def build_parser(prog="front_end"):
                    help="run one whole job without the menu and exit with its status")
     p.add_argument("--follow", metavar="DIR",
                    help="attach to a job already running (its programs in DIR, e.g. after the front end "
-                        "that started it crashed): print its progress, send nothing; exit like --print")
+                        "that started it crashed): send again the start recorded in DIR/%s (an arm that has started "
+                        "ignores it), print its progress; exit like --print" % START_RECORD)
     p.add_argument("--timeout", type=_timeout,
                    help="wall s to wait for the print to finish (--print default: %.0f + twice the longest "
                         "estimated print time at the clock's pace, /clock/speed; menu default: no limit)"

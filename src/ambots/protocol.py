@@ -27,7 +27,11 @@ text field can never smuggle a newline or a second command in.
 ====  ===============================  ==============================================
 code  words (``[]`` = optional)          meaning
 ====  ===============================  ==============================================
-A1    R                                start arm R
+A1    R [C]                            start arm R; with C, start chunk C once:
+                                       refused (A11) if another chunk is loaded,
+                                       ignored once chunk C has started (so it may
+                                       be sent again); without C a DONE arm runs
+                                       its chunk again from the top
 A2    R                                pause arm R
 A3    R                                send this arm's current position to arm R
                                        (the reply is an A10 with X Y Z; from an
@@ -201,13 +205,18 @@ def _required(cls, name):
 
 @dataclass(frozen=True)
 class Start(_Message):
-    """A1: start arm ``robot``."""
+    """A1: start arm ``robot``.  With ``chunk_id`` (C) the start is of that
+    chunk and happens once per load: the arm refuses it (A11) if another
+    chunk is loaded and ignores it once that chunk has started, so a start
+    may be sent again safely (by a front end that replaces a crashed one).
+    Without C an arm that is DONE runs its chunk again from the top."""
     robot: int
+    chunk_id: Optional[int] = None
     sender: Optional[int] = None
     seq: Optional[int] = None
     after: Optional[int] = None
     CODE: ClassVar[int] = 1
-    WORDS: ClassVar[Tuple] = (("R", "robot", _ROBOT),) + _HEADER
+    WORDS: ClassVar[Tuple] = (("R", "robot", _ROBOT), ("C", "chunk_id", _U32)) + _HEADER
 
 
 @dataclass(frozen=True)

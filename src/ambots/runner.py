@@ -136,8 +136,17 @@ class ArmRunner:
         self._clear()
 
     # ----------------------------------------------------------- program
+    def starts_run(self, msg):
+        """True if the A1 ``msg`` (to this arm) begins a run of the loaded
+        chunk: an IDLE or DONE arm, and not a repeated start (with C) of a
+        chunk that has already started."""
+        return bool(self.items) and self.state in (ArmState.IDLE, ArmState.DONE) and (
+            msg.chunk_id is None or (not self.started and self.chunk is not None
+                                     and msg.chunk_id == self.chunk[0]))
+
     def _clear(self):
         self.chunk = None            #: identity of the loaded chunk
+        self.started = False         #: an A1 has started this chunk (a later A1 C<chunk> is ignored)
         self.items = []
         self.n_lines = 0
         self.layer_of_line = np.zeros(1, dtype=int)
@@ -258,11 +267,18 @@ class ArmRunner:
                 self._error(0, "chunk cleared while %s: stopped" % was.name)
             self._report()
         elif kind is Start:
+            loaded = self.chunk[0] if self.chunk is not None else None
             if not self.items:
                 self._error(0, "A1: no chunk loaded")
+            elif msg.chunk_id is not None and msg.chunk_id != loaded:
+                self._error(0, "A1 C%d refused: the chunk loaded is %s" % (
+                    msg.chunk_id, "C%d" % loaded if loaded is not None else "one without a C"))
+            elif msg.chunk_id is not None and self.started:
+                self._report()                         # a repeated start of this chunk: nothing to do
             elif self.state in (ArmState.IDLE, ArmState.DONE):
                 if self.state is ArmState.DONE:        # run the same chunk again from the top
                     self.idx, self.done_line, self.block = 0, 0, None
+                self.started = True
                 self.state = ArmState.PRINTING
                 self.clock = max(now, self.rest_at())
                 self._report()
@@ -415,7 +431,7 @@ class ArmRunner:
                    "line_done": bool(b.line_end[k]) if k > 0 else False, "t": float(b.t[k]),
                    "after": self.after_block.name if self.after_block is not None else None}
         return {
-            "chunk": list(self.chunk) if self.chunk is not None else None,
+            "chunk": list(self.chunk) if self.chunk is not None else None, "started": self.started,
             "state": self.state.name, "clock": self.clock, "idx": self.idx, "q": self.q.tolist(),
             "done_line": int(self.done_line), "layer": int(self.layer),
             "wait": encode(self.wait) if self.wait is not None else None,
@@ -438,6 +454,7 @@ class ArmRunner:
         self.chunk = tuple(cp["chunk"]) if cp["chunk"] is not None else None
         self.items, self.n_lines, self.layer_of_line = items, n_lines, layer_of_line
         self.state = ArmState[cp["state"]]
+        self.started = bool(cp.get("started", self.state is not ArmState.IDLE))
         self.clock, self.idx = float(cp["clock"]), int(cp["idx"])
         self.q = np.array(cp["q"], dtype=float)
         self.done_line, self.layer = int(cp["done_line"]), int(cp["layer"])

@@ -587,3 +587,120 @@ def test_follow_without_progress_times_out_naming_the_silent_arms(cell, jobs, tm
 def test_follow_with_a_bad_directory_is_bad_input(cell, tmp_path):
     s = Session([], cell)
     assert s.menu.attach(str(tmp_path / "none")) == EXIT_BAD_INPUT and "no such directory" in s.errors[-1]
+
+
+# ------------------------------------------------------------------ a start lost with a crashed front end
+
+# the two arms' programs (default cell renumbered: kinova R1, ur10 R2), one layer each, on either side
+# of the bed's middle
+def _program(x0, x1):
+    return ("G21\nG90\nM83\n;LAYER_CHANGE\n;Z:0.2\nG0 X%d Y-10 Z0.2 F9000\nG1 X%d Y-10 E2.0 F1800\n"
+            "G1 X%d Y0 E0.4\nG1 X%d Y0 E2.0\n" % (x0, x1, x1, x0))
+
+
+class RunnerHub(FakeLink):
+    """A FakeLink whose hub delivers the front end's commands to real
+    :class:`~ambots.runner.ArmRunner` s (``runners``: id -> runner) and
+    forwards their reports back; ``lost``: (code, robot) of commands it
+    never receives (neither acknowledged nor delivered: dropped on every
+    try).  Each wait of the front end advances the arms by ``step`` s."""
+
+    def __init__(self, runners, lost=(), step=2.0):
+        super().__init__()
+        self.runners, self.lost, self.step = runners, set(lost), step
+
+    def _hub_receives(self, text):
+        msg = decode(text)
+        if not isinstance(msg, Ack) and (msg.CODE, msg.robot) in self.lost:
+            self.sent.append(text)
+            return
+        super()._hub_receives(text)
+        if not isinstance(msg, Ack):
+            r = self.runners[msg.robot]
+            r.handle(replace(msg, sender=None, seq=None, after=None), now=r.clock)
+            self._forward()
+
+    def _forward(self):
+        for r in self.runners.values():
+            out, r.outbox = r.outbox, []
+            for _, m in out:
+                self.feed(replace(m, clock=None) if isinstance(m, Status) else m)
+
+    def wait(self, timeout):
+        for r in self.runners.values():
+            r.advance(r.clock + self.step)
+        self._forward()
+        super().wait(timeout)
+
+
+def test_a_start_lost_with_the_front_end_is_sent_again_by_its_replacement_and_printed_once(cell, tmp_path):
+    """The case CI met under load: the front end sends A1 to both arms, the
+    UR10's is still being retried (never acknowledged) when the front end
+    dies.  The replacement (--follow) sends the recorded start again with
+    the chunk's id: the UR10 starts, the Kinova, which had started, ignores
+    it, and each arm lays exactly the beads of an uninterrupted run of its
+    program (run alone here, as the reference)."""
+    from ambots.motion import MotionPlanner
+    from ambots.runner import ArmRunner
+    texts = {"kinova": _program(-60, -20), "ur10": _program(20, 60)}
+    for name, text in texts.items():
+        (tmp_path / (name + ".gcode")).write_text(text)
+    planners = {a.name: MotionPlanner(a, cell) for a in cell.arms}
+
+    def runners():
+        return {a.id: ArmRunner(a, cell, planner=planners[a.name], record=True) for a in cell.arms}
+
+    reference = runners()
+    for r, a in zip(reference.values(), cell.arms):
+        r.handle(LoadChunk(r.id, texts[a.name], chunk_id=1))
+        r.handle(Start(r.id))
+        while r.state is ArmState.PRINTING:
+            r.advance(r.clock + 2.0)
+        assert r.state is ArmState.DONE and r.beads
+    arms = runners()
+    first = Session(["3", str(tmp_path), "4", "5"], cell, link=RunnerHub(arms, lost={(1, 2)}), ack_timeout=6.0)
+    assert first.run() == EXIT_OK
+    assert "the hub has not acknowledged the start command" in first.text
+    record = json.loads((tmp_path / "start.json").read_text())
+    chunk = first.link.messages(LoadChunk)[0].chunk_id
+    assert record == {"chunk": chunk, "started": ["kinova", "ur10"], "arms": {"kinova": 1, "ur10": 2}}
+    assert [m.chunk_id for m in first.link.messages(Start)] == [chunk, chunk]
+    assert arms[1].state is not ArmState.IDLE and arms[2].state is ArmState.IDLE      # the UR10's A1 lost
+    # the front end is gone (so is its retrying); a new one attaches
+    second = Session([], cell, link=RunnerHub(arms))
+    assert second.menu.attach(str(tmp_path), timeout=600) == EXIT_OK, second.text
+    assert [(m.robot, m.chunk_id) for m in second.link.messages()] == [(1, chunk), (2, chunk)]
+    assert "A1 C%d sent again to kinova (R1), ur10 (R2)" % chunk in second.text
+    for i, r in arms.items():
+        assert r.state is ArmState.DONE and not [m for _, m in r.outbox if isinstance(m, ErrorReport)]
+        ref = reference[i]
+        for name in ("line", "p0", "p1", "e_mm"):
+            got = np.concatenate([getattr(b, name) for b in r.beads])
+            want = np.concatenate([getattr(b, name) for b in ref.beads])
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-9, err_msg="%s %s" % (r.arm.name, name))
+
+
+def test_without_a_record_the_follower_sends_nothing_and_a_later_start_is_plain(cell, jobs, tmp_path):
+    """No start.json (programs sent by hand, or an older front end): --follow
+    sends nothing.  In the menu, the second 4 of the same programs sends a
+    plain A1 (a DONE arm prints again, as in the original)."""
+    write_job(jobs["concurrent"], str(tmp_path))
+    s = Session([], cell)
+    s.link.feed(done(1, jobs["concurrent"]), done(2, jobs["concurrent"]))
+    assert s.menu.attach(str(tmp_path)) == EXIT_OK and s.link.messages() == []
+    job = jobs["concurrent"]
+
+    class EveryStartDone(FakeLink):                 # the arms report DONE after every A1
+        def _hub_receives(self, text):
+            msg = decode(text)
+            if isinstance(msg, Start):
+                self.replies[msg.robot] = [done(msg.robot, job)]
+            super()._hub_receives(text)
+    link = EveryStartDone()
+    s = with_job(Session(["3", "4", "4", "5"], cell, link=link), job)
+    s.menu.directory = str(tmp_path)
+    assert s.run() == EXIT_OK and s.errors == []
+    starts = link.messages(Start)
+    chunk = link.messages(LoadChunk)[0].chunk_id
+    assert [m.chunk_id for m in starts] == [chunk, chunk, None, None]
+    assert json.loads((tmp_path / "start.json").read_text())["chunk"] == chunk

@@ -42,6 +42,8 @@ def test_original_a5_chunk():
 def test_new_commands_wire_format():
     assert encode(Start(2, sender=HUB, seq=17)) == "A1 R2 S1001 Q17"
     assert encode(Start(0)) == "A1 R0"                     # the original's Kinova
+    assert encode(Start(1, chunk_id=1764316800, sender=1000, seq=3)) == "A1 R1 C1764316800 S1000 Q3"
+    assert decode("a1 c9 r2") == Start(2, chunk_id=9)
     assert encode(Ack(0, 17, sender=2)) == "A8 R0 Q17 S2"
     assert encode(WaitFor(1, 2, layer=5)) == "A9 R1 W2 L5"
     assert encode(WaitFor(1, 2, line=1200)) == "A9 R1 W2 N1200"

@@ -304,6 +304,75 @@ def test_pause_in_the_travel_from_home_stops_at_its_end(arm, cell, planner):
     assert r.state is ArmState.DONE
 
 
+# ------------------------------------------------------------ A1 C<chunk>: a start sent again
+def test_a_start_naming_the_chunk_starts_it_once(arm, cell, planner, reference):
+    """A1 R<id> C<chunk>, sent again (by a front end replacing a crashed
+    one), does nothing once that chunk has started: a DONE arm does not
+    print again, a PAUSED one is not resumed; the deposit is the
+    uninterrupted run's.  A plain A1 keeps the original's meaning."""
+    r = new_runner(arm, cell, planner)
+    r.handle(LoadChunk(r.id, PROGRAM, chunk_id=41), now=0.0)
+    assert r.starts_run(Start(r.id, chunk_id=41)) and not r.starts_run(Start(r.id, chunk_id=40))
+    r.handle(Start(r.id, chunk_id=41), now=0.0)
+    assert r.state is ArmState.PRINTING
+    r.outbox.clear()
+    r.handle(Start(r.id, chunk_id=41), now=r.clock)               # while printing: nothing
+    run(r, until=3.0)
+    r.handle(Pause(r.id), now=r.clock)
+    run(r)
+    assert r.state is ArmState.PAUSED
+    paused_at = r.done_line
+    r.handle(Start(r.id, chunk_id=41), now=r.clock)               # not a resume
+    assert r.state is ArmState.PAUSED and r.done_line == paused_at
+    assert not r.starts_run(Start(r.id, chunk_id=41))
+    r.handle(Resume(r.id), now=r.clock)
+    run(r)
+    assert r.state is ArmState.DONE
+    r.handle(Start(r.id, chunk_id=41), now=r.clock)               # DONE: not again
+    assert r.state is ArmState.DONE and r.done_line == N_LINES
+    assert not messages(r, ErrorReport)
+    assert messages(r, Status)[-1].state is ArmState.DONE         # it says where it is
+    same_beads(r, reference)
+    r.handle(Start(r.id), now=r.clock)                            # plain A1: again from the top
+    assert r.state is ArmState.PRINTING and r.done_line == 0
+
+
+def test_a_start_naming_another_chunk_is_refused(arm, cell, planner):
+    r = new_runner(arm, cell, planner)
+    r.handle(LoadChunk(r.id, PROGRAM, chunk_id=7), now=0.0)
+    r.handle(Start(r.id, chunk_id=8), now=0.0)
+    assert r.state is ArmState.IDLE and not r.starts_run(Start(r.id, chunk_id=8))
+    errs = messages(r, ErrorReport)
+    assert len(errs) == 1 and errs[0].message == "A1 C8 refused: the chunk loaded is C7"
+    r.handle(LoadChunk(r.id, PROGRAM), now=0.0)                   # a chunk without C: a new identity
+    r.handle(Start(r.id, chunk_id=7), now=0.0)
+    assert r.state is ArmState.IDLE and messages(r, ErrorReport)[-1].message.endswith("one without a C")
+
+
+def test_a_new_chunk_can_be_started_and_a_restored_arm_remembers_its_start(arm, cell, planner):
+    import json
+    a = new_runner(arm, cell, planner)
+    a.handle(LoadChunk(a.id, PROGRAM, chunk_id=1), now=0.0)
+    a.handle(Start(a.id, chunk_id=1), now=0.0)
+    run(a)
+    a.handle(LoadChunk(a.id, PROGRAM + "G1 X-30 Y0 E0.8\n", chunk_id=2), now=a.clock)
+    assert a.state is ArmState.IDLE and a.starts_run(Start(a.id, chunk_id=2))
+    a.handle(Start(a.id, chunk_id=2), now=a.clock)
+    assert a.state is ArmState.PRINTING
+    a.advance(a.clock + 2.0)
+    b = new_runner(arm, cell, planner)                            # the firmware crashed and came back
+    b.restore(json.loads(json.dumps(a.checkpoint())), PROGRAM + "G1 X-30 Y0 E0.8\n")
+    assert b.started and not b.starts_run(Start(b.id, chunk_id=2))
+    done_line = b.done_line
+    b.handle(Start(b.id, chunk_id=2), now=b.clock)
+    assert b.done_line == done_line and not messages(b, ErrorReport)
+    old = a.checkpoint()
+    del old["started"]                                            # a checkpoint written before C existed
+    c = new_runner(arm, cell, planner)
+    c.restore(old, PROGRAM + "G1 X-30 Y0 E0.8\n")
+    assert c.started
+
+
 # ------------------------------------------------------------ refusals
 def test_start_without_a_chunk_is_an_error(arm, cell, planner):
     r = new_runner(arm, cell, planner)

@@ -466,8 +466,7 @@ class FirmwareNode:
         r = self.runner
         if isinstance(message, (LoadChunk, ClearChunk)):
             self._new_run()
-        elif isinstance(message, Start) and message.robot == self.arm.id and r.items \
-                and r.state in (ArmState.IDLE, ArmState.DONE):
+        elif isinstance(message, Start) and message.robot == self.arm.id and r.starts_run(message):
             self._new_run()                   # a new run: new markers, its own statistics
             r.stats = RunStats()
         stop_q = None
