@@ -704,3 +704,22 @@ def test_without_a_record_the_follower_sends_nothing_and_a_later_start_is_plain(
     chunk = link.messages(LoadChunk)[0].chunk_id
     assert [m.chunk_id for m in starts] == [chunk, chunk, None, None]
     assert json.loads((tmp_path / "start.json").read_text())["chunk"] == chunk
+
+
+def test_an_unreadable_start_record_is_said_and_nothing_is_sent(cell, jobs, tmp_path):
+    write_job(jobs["concurrent"], str(tmp_path))
+    (tmp_path / "start.json").write_text('{"chunk": "twelve"')
+    s = Session([], cell)
+    s.link.feed(done(1, jobs["concurrent"]), done(2, jobs["concurrent"]))
+    assert s.menu.attach(str(tmp_path)) == EXIT_OK and s.link.messages() == []
+    assert any(e.startswith("warning: %s is unreadable" % (tmp_path / "start.json")) for e in s.errors)
+
+
+def test_a_folder_that_cannot_be_written_does_not_stop_the_print(cell, jobs, tmp_path, monkeypatch):
+    job = jobs["concurrent"]
+    link = FakeLink(replies={1: [done(1, job)], 2: [done(2, job)]})
+    s = with_job(Session(["3", "4", "5"], cell, link=link), job)
+    s.menu.directory = str(tmp_path / "not there")          # the record cannot be written
+    assert s.run() == EXIT_OK
+    assert [m.chunk_id is not None for m in link.messages(Start)] == [True, True]
+    assert any("could not record the start" in e and "--follow" in e for e in s.errors)
