@@ -275,7 +275,7 @@ class ArmRunner:
                     msg.chunk_id, "C%d" % loaded if loaded is not None else "one without a C"))
             elif msg.chunk_id is not None and self.started:
                 self._report()                         # a repeated start of this chunk: nothing to do
-            elif self.state in (ArmState.IDLE, ArmState.DONE):
+            elif self.starts_run(msg):
                 if self.state is ArmState.DONE:        # run the same chunk again from the top
                     self.idx, self.done_line, self.block = 0, 0, None
                 self.started = True
