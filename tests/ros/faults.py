@@ -7,9 +7,14 @@ the executed trajectories in simulated time -> contacts) -- with hub fault
 injection, a kill -9 of a firmware node mid-print (roslaunch respawns it;
 it resumes from its checkpoint) and/or a slowed arm.
 
-Result: the per-arm deposit journals (ambots.checkpoint), the recorder's
-report, the hub's last progress JSON (fault and retry counts), the number
-of kills."""
+The recorder forgets every trace and bead row a killed firmware had
+published (as if all of it had died in the publisher's queue of the killed
+process): the respawned firmware must publish the run so far again from
+its journals, or the contact check interpolates across the hole.
+
+Result: the per-arm deposit and trace journals (ambots.checkpoint), the
+executed motion as the recorder received it, the recorder's report, the
+hub's last progress JSON (fault and retry counts), the number of kills."""
 import json
 import os
 import random
@@ -26,10 +31,30 @@ _WATCH = r"""
 import json, sys, time, rospy
 from std_msgs.msg import String
 from ambots.config import default_cell_path, load_cell
-from ambots.ros.capture import PrintRecorder
+from ambots.ros.capture import PrintRecorder, _latest_copy
+import numpy as np
+
+
+class Forgetful(PrintRecorder):
+    # forgets every trace and bead row a firmware published before it was
+    # killed, as if all of it had died in its publisher's queue: the
+    # respawned firmware (its rows numbered from 1 again) must publish the
+    # run so far again, or the check would interpolate across the hole
+    forgotten = 0
+
+    def _on_rows(self, msg, where):
+        store, name = where
+        last = self._row_seq.get((id(store), name))
+        if last is not None and msg.layout.data_offset <= last:
+            with self._lock:
+                store[name] = []
+                self.forgotten += 1
+        super()._on_rows(msg, where)
+
+
 rospy.init_node("fault_watch", anonymous=True)
 cell = load_cell(default_cell_path())
-rec = PrintRecorder(cell)
+rec = Forgetful(cell)
 hub = {}
 def on_progress(msg):
     hub["last"] = json.loads(msg.data)
@@ -44,6 +69,9 @@ while time.monotonic() < deadline and not rospy.is_shutdown():
 time.sleep(1.5)                       # the last traces and progress
 report = rec.write(sys.argv[1])
 report["hub_progress"] = hub.get("last")
+report["forgotten_streams"] = rec.forgotten
+with rec._lock:
+    np.savez(sys.argv[1] + "/traces.npz", **{n: _latest_copy(np.concatenate(v)) for n, v in rec.traces.items() if v})
 json.dump(report, open(sys.argv[1] + "/report.json", "w"), indent=1)
 print("written", flush=True)
 """
@@ -132,13 +160,21 @@ def run_print(tmp, port, model, faults="", kill_after=None, slowdown="1.0", seed
             f.close()
     report_path = os.path.join(out, "report.json")
     report = json.load(open(report_path)) if os.path.exists(report_path) else None
-    journals = {}
+    journals, knots = {}, {}
     for arm in ("kinova", "ur10"):
-        store = StateStore(state, arm)
+        store = StateStore(state, arm, dof=_dof(arm))
         cp = store.load()
         journals[arm] = store.read_journal(cp["records"] if cp else None)
+        knots[arm] = store.read_trace(cp["trace_records"] if cp else None)
+    traces_path = os.path.join(out, "traces.npz")
+    recorded = dict(np.load(traces_path)) if os.path.exists(traces_path) else {}
     return {"front_end_rc": rc, "report": report, "journals": journals, "kills": kills, "tmp": tmp,
-            "during": during_result}
+            "during": during_result, "knots": knots, "recorded_knots": recorded}
+
+
+def _dof(arm):
+    from ambots.config import default_cell_path, load_cell
+    return len(next(a for a in load_cell(default_cell_path()).arms if a.name == arm).profile.joint_names)
 
 
 def start_cell(port, env, log, *args):

@@ -9,7 +9,8 @@ under the same faults with the Kinova killed while it waits for its next
 turn.  Every run must finish
 with the same deposit (per arm: same beads in the same order under faults;
 per G-code line the same filament and bead length after a kill), and no
-contact in the executed motion."""
+contact in the executed motion, every knot of which reached the recorder
+(which forgets all a killed firmware had sent: faults.py)."""
 import os
 import re
 import subprocess
@@ -20,6 +21,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from ambots.ros.capture import _latest_copy  # noqa: E402
 from faults import compare_lines, coverage, run_print, sequential_model, small_model, unused_port  # noqa: E402
 
 FAULTS = "drop=0.2 dup=0.1 reorder=0.3 reorder_window=0.05 delay=0.002 seed=%d"
@@ -57,6 +59,17 @@ def _check_deposit(clean, run, arms=("kinova", "ur10")):
         missing, extra, diff = coverage(run["journals"][arm], path)
         assert not missing and not extra and diff < 1e-5, (arm, missing[:5], extra[:5], diff)
         _same_beads(clean["journals"][arm], run["journals"][arm])
+    _check_knots(run, arms)
+
+
+def _check_knots(run, arms):
+    """Every knot of the motion each firmware executed (its trace journal)
+    reached the recorder that checked the contacts, once."""
+    assert run["report"]["trace_gaps"] == 0, run["report"]
+    for arm in arms:
+        recorded, knots = run["recorded_knots"].get(arm), _latest_copy(run["knots"][arm])
+        assert recorded is not None and len(knots) > 100, arm
+        np.testing.assert_array_equal(recorded, knots, err_msg=arm)
 
 
 @pytest.mark.parametrize("seed", [7])
@@ -75,6 +88,7 @@ def test_dropped_duplicated_reordered_messages_change_nothing(tmp_path, model, c
 def test_a_firmware_killed_mid_print_resumes_from_its_checkpoint(tmp_path, model, clean, seed):
     run = run_print(tmp_path, 11613, model, faults=FAULTS % seed, kill_after=0.8)
     assert run["kills"] == 1, run["tmp"]
+    assert run["report"]["forgotten_streams"] >= 1, run["report"]      # the recorder lost what it had of the Kinova
     assert run["front_end_rc"] == 0, run["tmp"]
     rep = run["report"]
     assert rep["finished"] and rep["collisions"] == NO_CONTACT, rep
@@ -83,6 +97,7 @@ def test_a_firmware_killed_mid_print_resumes_from_its_checkpoint(tmp_path, model
     # every extrusion of both programs printed exactly once (the killed arm too); the other
     # arm, which waited at its barriers, laid the clean run's beads (same program)
     _check_deposit(clean, run, arms=("ur10",))
+    _check_knots(run, ("kinova",))
     path = os.path.join(run["tmp"], "job", "kinova.gcode")
     assert open(path).read() == open(os.path.join(clean["tmp"], "job", "kinova.gcode")).read()
     missing, extra, diff = coverage(run["journals"]["kinova"], path)
@@ -216,6 +231,7 @@ def test_the_sequential_hand_over_survives_faults_and_a_kill_while_paused(tmp_pa
     run = run_print(tmp_path_factory.mktemp("seq_faults"), unused_port(), model, faults=FAULTS % 11, mode="sequential",
                     kill_when="PAUSED")
     assert run["kills"] == 1, run["tmp"]
+    assert run["report"]["forgotten_streams"] >= 1, run["report"]      # the recorder lost what it had of the Kinova
     assert run["front_end_rc"] == 0, run["tmp"]
     rep = run["report"]
     assert rep["finished"] and rep["collisions"] == NO_CONTACT, rep

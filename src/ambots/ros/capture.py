@@ -188,10 +188,11 @@ class PrintRecorder:
             key = (id(store), name)
             last = self._row_seq.get(key)
             seq = msg.layout.data_offset
+            if last is not None and seq <= last:       # a respawned firmware numbers from 1 again
+                last = 0
             if last is not None and seq > last + 1:
                 self.trace_gaps += seq - last - 1      # chunks lost: the check would interpolate across
-            if last is None or seq > last or seq == 1:
-                self._row_seq[key] = seq
+            self._row_seq[key] = seq
 
     def check_executed(self):
         """Arm-arm, arm-bed and arm-part contacts of the executed motion in

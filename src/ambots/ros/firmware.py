@@ -346,7 +346,7 @@ class FirmwareNode:
         self.slowdown = float(slowdown)       # > 1: this arm's motion takes that much longer (fault tests)
         if self.slowdown != 1.0:
             self.runner.planner.time_scale = self.slowdown
-        self.store = StateStore(state_dir, arm.name) if state_dir else None
+        self.store = StateStore(state_dir, arm.name, dof=len(arm.profile.joint_names)) if state_dir else None
         self.checkpoint_period = 0.1          # wall s between checkpoints while printing (at least)
         self.run_id = run_id
         self.resumed = None                   # the checkpoint this node resumed from
@@ -354,6 +354,7 @@ class FirmwareNode:
         self._names = {a.id: a.name for a in cell.arms}
         self._thread = None
         self._traced = (None, None)
+        self._replay = None                   # (knots, beads) so far, journalled: published again at a resume
         self._late = False
         self._blocked = False                 # the runner waits for other arms to clear the way (logged)
         self.driver = None
@@ -402,6 +403,9 @@ class FirmwareNode:
             self._outgoing = [self.runner.status(with_position=True)]   # here I am
             if self.store is not None:
                 self._resume_from_checkpoint()
+        if self._replay is not None:
+            self._publish_replay(*self._replay)
+            self._replay = None
         self._thread = threading.Thread(target=self._loop, name="firmware-%s" % arm.name, daemon=True)
         self._thread.start()
 
@@ -530,6 +534,8 @@ class FirmwareNode:
             r.trace_t.clear()
             r.trace_q.clear()
             r.trace_v.clear()
+        if trace is not None and self.store is not None:
+            self.store.append_trace(trace)
         if r.beads:               # the beads with their times: rows (p0 xyz, p1 xyz, t, e_mm)
             beads = np.concatenate([np.column_stack([b.p0, b.p1, b.t, b.e_mm]) for b in r.beads])
         for bead in r.beads:
@@ -709,14 +715,14 @@ class FirmwareNode:
         directory; the other arms are asked where they are (A3)."""
         cp = self.store.load()
         if cp is None or cp.get("run_id") != self.run_id or cp.get("arm") != self.arm.name:
-            self.store.new_journal()           # another run's state: start clean
+            self.store.start_clean()           # another run's state: start clean
             return
         rcp = cp["runner"]
         if rcp["chunk"] is not None:
             identity, text = self.store.load_chunk()
             if list(identity) != list(rcp["chunk"]):
                 rospy.logerr("%s firmware: checkpoint and saved chunk differ: starting clean", self.arm.name)
-                self.store.new_journal()
+                self.store.start_clean()
                 return
             self.runner.restore(rcp, text)
         with self._io:
@@ -724,17 +730,53 @@ class FirmwareNode:
             self.sender.restore(cp["sender"], time.monotonic())
         self.sim_now = max(float(cp["sim_now"]), self.runner.clock)
         self.peers = {int(k): v for k, v in cp["peers"].items()}
-        self.store.reopen(int(cp["records"]))
+        trace_records = int(cp.get("trace_records", 0))
+        self.store.reopen(int(cp["records"]), trace_records)
         journal = self.store.read_journal(int(cp["records"]))
         if len(journal):
             self.markers.add(Bead(journal[:, 0:3], journal[:, 3:6], journal[:, 6], journal[:, 7].astype(int),
                                   journal[:, 8].astype(int), journal[:, 9]))
+        # what the killed node published last may never have left its publisher's queue
+        self._replay = (self.store.read_trace(trace_records), journal[:, [0, 1, 2, 3, 4, 5, 9, 6]])
         self.resumed = cp
         # messages held for the arm's progress when it stopped: the arm has stopped too
         self._outgoing = [decode(text) for text in cp.get("held", [])] + [self.runner.status(with_position=True)] \
             + [SendPosition(a.id) for a in self.cell.arms if a.id != self.arm.id]
         rospy.logwarn("%s firmware: resumed from its checkpoint: %s at line %d, %d beads kept",
                       self.arm.name, self.runner.state.name, self.runner.done_line, len(journal))
+
+    def _publish_replay(self, knots, beads, wait_s=5.0, rows_per_message=20000):
+        """After a resume: publish the run's executed motion and beads so far
+        again (from the journals), before anything new, once every subscriber
+        the master knows of has connected (at most ``wait_s`` wall s).  A
+        recorder keeps the later copy of rows it had (:func:`ambots.ros.
+        capture._latest_copy`), and gets what the killed node's queue lost."""
+        pubs = [(p, rows) for p, rows in ((self._trace, knots), (self._bead_times, beads)) if len(rows)]
+        if not pubs:
+            return
+        try:
+            import rosgraph
+            _, subscribed, _ = rosgraph.Master(rospy.get_name()).getSystemState()
+            wanted = {topic: len(nodes) for topic, nodes in subscribed}
+        except Exception as exc:          # noqa: BLE001 -- the master is there: a node just registered with it
+            rospy.logwarn("%s firmware: subscribers of the trace not known (%s): replaying at once", self.arm.name,
+                          exc)
+            wanted = {}
+        t_end = time.monotonic() + wait_s
+        while time.monotonic() < t_end and not rospy.is_shutdown() and any(
+                p.get_num_connections() < wanted.get(p.resolved_name, 0) for p, _ in pubs):
+            time.sleep(0.01)
+        late = [p.resolved_name for p, _ in pubs if p.get_num_connections() < wanted.get(p.resolved_name, 0)]
+        if late:
+            rospy.logwarn("%s firmware: not every subscriber of %s connected within %.0f s: they miss the replay",
+                          self.arm.name, ", ".join(late), wait_s)
+        for p, rows in pubs:
+            key = "trace" if p is self._trace else "beads"
+            for k in range(0, len(rows), rows_per_message):
+                self._row_seq[key] += 1
+                p.publish(_rows(np.ascontiguousarray(rows[k:k + rows_per_message]), self._row_seq[key]))
+        rospy.loginfo("%s firmware: published again the run so far: %d knots, %d beads", self.arm.name,
+                      len(knots), len(beads))
 
     def _stats_json(self):
         r = self.runner
