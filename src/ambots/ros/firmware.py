@@ -75,6 +75,7 @@ import time
 from dataclasses import asdict
 
 import numpy as np
+import rosgraph
 import rospy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
@@ -746,32 +747,34 @@ class FirmwareNode:
                       self.arm.name, self.runner.state.name, self.runner.done_line, len(journal))
 
     def _publish_replay(self, knots, beads, wait_s=5.0, rows_per_message=20000):
-        """After a resume: publish the run's executed motion and beads so far
-        again (from the journals), before anything new, once every subscriber
-        the master knows of has connected (at most ``wait_s`` wall s).  A
-        recorder keeps the later copy of rows it had (:func:`ambots.ros.
-        capture._latest_copy`), and gets what the killed node's queue lost."""
-        pubs = [(p, rows) for p, rows in ((self._trace, knots), (self._bead_times, beads)) if len(rows)]
+        """After a resume: publish again, from the journals, the motion this
+        node executed in this ROS run and the run's beads, before anything
+        new, once every subscriber the master knows of has connected (at
+        most ``wait_s`` wall s).  A recorder keeps the later copy of rows it
+        had (:func:`ambots.ros.capture._latest_copy`) and gets what the
+        killed node's publisher queue lost."""
+        pubs = [(key, p, rows) for key, p, rows in (("trace", self._trace, knots), ("beads", self._bead_times, beads))
+                if len(rows)]
         if not pubs:
             return
         try:
-            import rosgraph
             _, subscribed, _ = rosgraph.Master(rospy.get_name()).getSystemState()
             wanted = {topic: len(nodes) for topic, nodes in subscribed}
         except Exception as exc:          # noqa: BLE001 -- the master is there: a node just registered with it
             rospy.logwarn("%s firmware: subscribers of the trace not known (%s): replaying at once", self.arm.name,
                           exc)
             wanted = {}
+
+        def late():
+            return [p.resolved_name for _, p, _ in pubs if p.get_num_connections() < wanted.get(p.resolved_name, 0)]
+
         t_end = time.monotonic() + wait_s
-        while time.monotonic() < t_end and not rospy.is_shutdown() and any(
-                p.get_num_connections() < wanted.get(p.resolved_name, 0) for p, _ in pubs):
+        while late() and time.monotonic() < t_end and not rospy.is_shutdown():
             time.sleep(0.01)
-        late = [p.resolved_name for p, _ in pubs if p.get_num_connections() < wanted.get(p.resolved_name, 0)]
-        if late:
+        if late():
             rospy.logwarn("%s firmware: not every subscriber of %s connected within %.0f s: they miss the replay",
-                          self.arm.name, ", ".join(late), wait_s)
-        for p, rows in pubs:
-            key = "trace" if p is self._trace else "beads"
+                          self.arm.name, ", ".join(late()), wait_s)
+        for key, p, rows in pubs:
             for k in range(0, len(rows), rows_per_message):
                 self._row_seq[key] += 1
                 p.publish(_rows(np.ascontiguousarray(rows[k:k + rows_per_message]), self._row_seq[key]))
