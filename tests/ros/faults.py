@@ -42,14 +42,9 @@ class Forgetful(PrintRecorder):
     # run so far again, or the check would interpolate across the hole
     forgotten = 0
 
-    def _on_rows(self, msg, where):
-        store, name = where
-        last = self._row_seq.get((id(store), name))
-        if last is not None and msg.layout.data_offset <= last:
-            with self._lock:
-                store[name] = []
-                self.forgotten += 1
-        super()._on_rows(msg, where)
+    def _restarted(self, store, name):
+        store[name] = []
+        self.forgotten += 1
 
 
 rospy.init_node("fault_watch", anonymous=True)

@@ -178,6 +178,15 @@ class PrintRecorder:
         store, name = where
         rows = rows_of(msg)
         with self._lock:
+            key = (id(store), name)
+            last = self._row_seq.get(key)
+            seq = msg.layout.data_offset
+            if last is not None and seq <= last:       # a respawned firmware numbers from 1 again
+                last = 0
+                self._restarted(store, name)
+            if last is not None and seq > last + 1:
+                self.trace_gaps += seq - last - 1      # chunks lost: the check would interpolate across
+            self._row_seq[key] = seq
             store.setdefault(name, []).append(rows)
             if store is self.bead_times and len(rows):       # the nozzle path's box (p0, p1)
                 import numpy as np
@@ -185,14 +194,10 @@ class PrintRecorder:
                 lo, hi = P.min(axis=0), P.max(axis=0)
                 self.part_lo = lo if self.part_lo is None else np.minimum(self.part_lo, lo)
                 self.part_hi = hi if self.part_hi is None else np.maximum(self.part_hi, hi)
-            key = (id(store), name)
-            last = self._row_seq.get(key)
-            seq = msg.layout.data_offset
-            if last is not None and seq <= last:       # a respawned firmware numbers from 1 again
-                last = 0
-            if last is not None and seq > last + 1:
-                self.trace_gaps += seq - last - 1      # chunks lost: the check would interpolate across
-            self._row_seq[key] = seq
+
+    def _restarted(self, store, name):
+        """Firmware ``name`` was respawned: its rows in ``store`` are numbered
+        from 1 again (it publishes its run so far again first)."""
 
     def check_executed(self):
         """Arm-arm, arm-bed and arm-part contacts of the executed motion in

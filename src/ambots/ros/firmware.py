@@ -355,7 +355,6 @@ class FirmwareNode:
         self._names = {a.id: a.name for a in cell.arms}
         self._thread = None
         self._traced = (None, None)
-        self._replay = None                   # (knots, beads) so far, journalled: published again at a resume
         self._late = False
         self._blocked = False                 # the runner waits for other arms to clear the way (logged)
         self.driver = None
@@ -400,13 +399,13 @@ class FirmwareNode:
         if self.driver is not None:
             self.driver.start(self.runner)
         rospy.Subscriber(topics.arm_topic(arm), String, self._on_inbox, queue_size=1000)
+        replay = None
         with self.lock:
             self._outgoing = [self.runner.status(with_position=True)]   # here I am
             if self.store is not None:
-                self._resume_from_checkpoint()
-        if self._replay is not None:
-            self._publish_replay(*self._replay)
-            self._replay = None
+                replay = self._resume_from_checkpoint()
+        if replay is not None:
+            self._publish_replay(*replay)
         self._thread = threading.Thread(target=self._loop, name="firmware-%s" % arm.name, daemon=True)
         self._thread.start()
 
@@ -538,7 +537,7 @@ class FirmwareNode:
         if trace is not None and self.store is not None:
             self.store.append_trace(trace)
         if r.beads:               # the beads with their times: rows (p0 xyz, p1 xyz, t, e_mm)
-            beads = np.concatenate([np.column_stack([b.p0, b.p1, b.t, b.e_mm]) for b in r.beads])
+            beads = np.concatenate([bead_rows(b.p0, b.p1, b.t, b.e_mm) for b in r.beads])
         for bead in r.beads:
             if self.store is not None:
                 self.store.append(bead.p0, bead.p1, bead.e_mm, bead.line, bead.layer, bead.t)
@@ -713,7 +712,10 @@ class FirmwareNode:
     def _resume_from_checkpoint(self):
         """After a crash (same ROS run): the runner, the duplicate filter,
         the unacknowledged messages and the deposit so far, from the state
-        directory; the other arms are asked where they are (A3)."""
+        directory; the other arms are asked where they are (A3).  Returns
+        what to publish again, (knots, bead rows) from the journals (what
+        the killed node published last may never have left its publisher's
+        queue), or None when starting clean."""
         cp = self.store.load()
         if cp is None or cp.get("run_id") != self.run_id or cp.get("arm") != self.arm.name:
             self.store.start_clean()           # another run's state: start clean
@@ -737,14 +739,14 @@ class FirmwareNode:
         if len(journal):
             self.markers.add(Bead(journal[:, 0:3], journal[:, 3:6], journal[:, 6], journal[:, 7].astype(int),
                                   journal[:, 8].astype(int), journal[:, 9]))
-        # what the killed node published last may never have left its publisher's queue
-        self._replay = (self.store.read_trace(trace_records), journal[:, [0, 1, 2, 3, 4, 5, 9, 6]])
         self.resumed = cp
         # messages held for the arm's progress when it stopped: the arm has stopped too
         self._outgoing = [decode(text) for text in cp.get("held", [])] + [self.runner.status(with_position=True)] \
             + [SendPosition(a.id) for a in self.cell.arms if a.id != self.arm.id]
         rospy.logwarn("%s firmware: resumed from its checkpoint: %s at line %d, %d beads kept",
                       self.arm.name, self.runner.state.name, self.runner.done_line, len(journal))
+        return self.store.read_trace(trace_records), bead_rows(journal[:, 0:3], journal[:, 3:6], journal[:, 9],
+                                                               journal[:, 6])
 
     def _publish_replay(self, knots, beads, wait_s=5.0, rows_per_message=20000):
         """After a resume: publish again, from the journals, the motion this
@@ -799,6 +801,11 @@ class FirmwareNode:
         markers = self.markers.all()
         if markers is not None:
             publish(markers)
+
+
+def bead_rows(p0, p1, t, e_mm):
+    """The ``~beads`` rows (K, 8): p0 xyz, p1 xyz (m), time (s), filament (mm)."""
+    return np.column_stack([p0, p1, t, e_mm])
 
 
 def _rows(a, seq=0):
