@@ -591,19 +591,21 @@ class Menu:
         out = self.out or os.path.join("out", os.path.splitext(os.path.basename(path))[0] or "model")
         summary = write_job(job, out)
         self.job, self.programs, self.directory, self.sent = job, dict(job.programs), out, False
-        self.print_times = {name: a["print_time_s"] for name, a in summary["arms"].items()}
+        # each arm's time by the one timing law (its feeds' time if the plan could not be timed)
+        self.print_times = {name: a.get("done_s") or a["print_time_s"] for name, a in summary["arms"].items()}
         estimate = (summary.get("plan") or {}).get("makespan_estimate_s")
         if estimate:                 # the one timing law's makespan: longer than the feeds' times
             self.print_times["makespan"] = estimate
         self.say("sliced in %.1f s: model %.0f mm3 -> %s" % (time.monotonic() - t0, summary["model_volume_mm3"],
                                                               ", ".join(self.programs)))
-        self.say("  %-8s %4s %10s %7s %7s %11s %9s %s" % ("arm", "id", "part mm3", "layers", "lines",
-                                                           "filament mm", "time s", "starts"))
+        from ambots.job import arm_time_columns
+        self.say("  %-8s %4s %10s %7s %7s %11s %8s %8s %s" % ("arm", "id", "part mm3", "layers", "lines",
+                                                               "filament mm", "busy s", "done s", "starts"))
         for name, a in summary["arms"].items():
             p = self.programs[name]
-            self.say("  %-8s R%-3d %10.0f %7d %7d %11.1f %9.0f %s" % (
+            self.say("  %-8s R%-3d %10.0f %7d %7d %11.1f %s %s" % (
                 name, a["id"], a["part_volume_mm3"], a["layers"], len(p.lines), a["extruded_filament_mm"],
-                a["print_time_s"], "by A1" if p.start_first else "after another arm"))
+                arm_time_columns(a), "by A1" if p.start_first else "after another arm"))
         from ambots.job import overhang_lines, plan_lines, unsupported_line
         from ambots.repair import repair_lines
         for line in repair_lines(summary.get("repair")):

@@ -67,8 +67,15 @@ class Candidate:
     programs: dict = field(default=None, repr=False)   #: {arm name: ArmProgram}, when built
     #: {arm name: G-code events of its program}, the one parse of each program
     events: dict = field(default=None, repr=False)
-    #: {arm name: s it moves (the makespan less its waits)}, when timed
-    busy_s: dict = field(default=None, repr=False)
+    #: {arm name: {"start_s", "busy_s" (s it moves), "idle_s" (s it waits
+    #: after its start), "done_s" (when it is done)}} on the plan's one
+    #: clock, when timed (:func:`ambots.estimate.estimate_programs`)
+    timeline: dict = field(default=None, repr=False)
+
+    @property
+    def busy_s(self):
+        """{arm name: s it moves (its time less its waits)}, when timed."""
+        return None if self.timeline is None else {n: a["busy_s"] for n, a in self.timeline.items()}
 
     def as_dict(self):
         return {"arms": list(self.arms), "how": self.how,
@@ -132,6 +139,8 @@ class Job:
                "model_volume_mm3": signed_volume(self.mesh) if self.mesh is not None else None,
                "one_arm_estimate_s": self.one_arm_estimate_s, "plan": self.plan_summary(), "arms": {}}
         events = self.events()
+        chosen = self.chosen
+        timeline = (chosen.timeline if chosen is not None and chosen.programs is self.programs else None) or {}
         out["overhang"] = self.overhang()
         out["repair"] = self.repair()
         out["seams"] = self.seam_setup()
@@ -145,6 +154,9 @@ class Job:
                 "moves": s["moves"], "extrude_path_mm": s["extrude_path_mm"],
                 "travel_path_mm": s["travel_path_mm"], "extruded_filament_mm": s["extruded_filament_mm"],
                 "print_time_s": s["print_time_s"], "a_commands": s["a_commands"],
+                # the one timing law's figures of this arm in the plan (None: not timed)
+                **{k: None if name not in timeline else round(float(timeline[name][k]), 1)
+                   for k in ("busy_s", "idle_s", "done_s")},
                 "stripped_lines": [{"line": l, "text": t} for l, t in self.programs[name].removed]}
         return out
 
@@ -224,6 +236,14 @@ def overhang_lines(overhang):
             "(bridges up to %g mm allowed), on %s%s" % (
                 100.0 * overhang["unsupported_share"], overhang["unsupported_mm"], overhang["bridge_max_mm"], where,
                 "; " + why if why else "")]
+
+
+def arm_time_columns(arm):
+    """An arm's ``busy s`` and ``done s`` columns (8 wide each) of the slice
+    summaries (job.json's ``arms.<name>``): the one timing law's seconds the
+    arm moves and when it is done on the plan's clock, the same law as the
+    plan's makespan; "-" where the plan could not be timed."""
+    return " ".join("%8s" % ("-" if arm.get(k) is None else "{:,.0f}".format(arm[k])) for k in ("busy_s", "done_s"))
 
 
 def _how(arms, how):
@@ -380,7 +400,8 @@ TIE_SHARE = 0.03
 
 def _timed(programs, cell):
     """Makespan of programs by the one timing law (s), or None and why not,
-    and the programs' events ({arm name: events}, None if not parsed): each
+    the programs' events ({arm name: events}, None if not parsed) and each
+    arm's times on the one clock (:attr:`Candidate.timeline`): each
     program is parsed once (the emitter's programs: not at all, see
     :meth:`ambots.coordinate.ArmProgram.parse`), for the timing and later
     the chosen plan's figures (:meth:`Job.summary`)."""
@@ -393,13 +414,15 @@ def _timed(programs, cell):
         return None, str(exc), None, None
     if est["errors"]:
         return None, "; ".join(est["errors"].values()), events, None
-    return est["makespan_s"], None, events, {n: a["busy_s"] for n, a in est["arms"].items()}
+    return est["makespan_s"], None, events, {
+        n: {"start_s": a["start_s"], "busy_s": a["busy_s"], "idle_s": a["idle_s"], "done_s": a["finish_s"]}
+        for n, a in est["arms"].items()}
 
 
 def _plan(parts, sliced, programs, arms, how, cell):
     """A plan's (parts, sliced, programs, Candidate), timed."""
-    t, why, events, busy = _timed(programs, cell)
-    return parts, sliced, programs, Candidate(arms, how, t, why, programs, events, busy)
+    t, why, events, timeline = _timed(programs, cell)
+    return parts, sliced, programs, Candidate(arms, how, t, why, programs, events, timeline)
 
 
 #: a plan of several arms that is faster than each arm alone is split again

@@ -254,7 +254,12 @@ def test_choice_2_slices_the_model_and_writes_the_programs(cell, cube_stl, tmp_p
     assert list(menu.programs) == ["ur10"] and not menu.sent
     assert (out / "ur10.gcode").read_text() == menu.programs["ur10"].text
     assert any(l.startswith("  ur10     R2 ") for l in s.lines)
-    assert any(l.startswith("  plan: ur10 alone: ") for l in s.lines)
+    # the arm's own times are the plan's timing law (busy s, done s), as in job.json, not its feeds' time
+    arm = json.loads((out / "job.json").read_text())["arms"]["ur10"]
+    row = next(l for l in s.lines if l.startswith("  ur10     R2 "))
+    assert row.split()[-4:-2] == ["{:,.0f}".format(arm["busy_s"]), "{:,.0f}".format(arm["done_s"])]
+    assert arm["print_time_s"] < arm["busy_s"] and "busy s   done s" in "\n".join(s.lines)
+    assert any(l.startswith("  plan: ur10 alone: {:,.0f} s".format(arm["done_s"])) for l in s.lines)
     assert any(l.startswith("    also considered: 2 arms concurrent (kinova, ur10): ") for l in s.lines)
     assert "programs: ur10 in %s, not sent" % out in s.lines
     assert s.link.sent == []            # slicing sends nothing

@@ -55,6 +55,31 @@ def test_slice_writes_one_program_and_part_per_arm(tmp_path, cube_stl, slicer, m
     assert sum(vols) == pytest.approx(40 * 40 * 10, rel=1e-3)
 
 
+def test_the_per_arm_times_are_the_plans_timing_law_not_the_feeds(tmp_path, cube_stl, cell):
+    """The slice summary's per-arm ``busy s`` and ``done s`` are the one
+    timing law's, on the plan's clock: the last arm done is the plan's
+    makespan, each arm's busy time is its program timed alone (read back
+    from the file written), and no arm moves faster than its programmed
+    feedrates allow (``print_time_s``: length / feedrate, no acceleration,
+    a lower bound of any motion that keeps to the feeds)."""
+    from ambots.estimate import program_time
+    out = tmp_path / "out"
+    r = slice_cli(cube_stl, "--out", str(out), "--arms", "kinova,ur10")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads((out / "job.json").read_text())
+    arms = summary["arms"]
+    assert max(a["done_s"] for a in arms.values()) == pytest.approx(summary["plan"]["makespan_estimate_s"], abs=0.1)
+    header = next(l for l in r.stdout.splitlines() if l.split()[:2] == ["arm", "id"])
+    assert header.split()[-4:] == ["busy", "s", "done", "s"] and "time s" not in r.stdout
+    for name, a in arms.items():
+        text = (out / (name + ".gcode")).read_text()
+        assert a["busy_s"] == pytest.approx(program_time(text, cell.arm(name), cell), abs=0.1)
+        assert a["print_time_s"] < a["busy_s"] <= a["done_s"]
+        assert a["done_s"] == pytest.approx(a["busy_s"] + a["idle_s"], abs=0.2)
+        row = next(l for l in r.stdout.splitlines() if l.split()[:1] == [name])
+        assert row.split()[-2:] == ["{:,.0f}".format(a["busy_s"]), "{:,.0f}".format(a["done_s"])]
+
+
 def test_one_arm_alone_prints_everything(tmp_path, cube_stl, cell):
     job = run_job(cube_stl, cell, arms=[cell.arm("ur10")])
     summary = write_job(job, str(tmp_path))

@@ -54,12 +54,13 @@ def run(args):
     print("  " + unsupported_line(summary["overhang"]))
     for line in overhang_lines(summary["overhang"]):
         print("  " + line)
-    print("  %-8s %4s %10s %7s %7s %11s %11s %9s" % ("arm", "id", "part mm3", "layers", "moves",
-                                                    "extrude mm", "filament mm", "time s"))
+    from ambots.job import arm_time_columns
+    print("  %-8s %4s %10s %7s %7s %11s %11s %8s %8s" % ("arm", "id", "part mm3", "layers", "moves",
+                                                       "extrude mm", "filament mm", "busy s", "done s"))
     for name, a in summary["arms"].items():
-        print("  %-8s R%-3d %10.0f %7d %7d %11.1f %11.1f %9.0f" % (
+        print("  %-8s R%-3d %10.0f %7d %7d %11.1f %11.1f %s" % (
             name, a["id"], a["part_volume_mm3"], a["layers"], a["moves"], a["extrude_path_mm"],
-            a["extruded_filament_mm"], a["print_time_s"]))
+            a["extruded_filament_mm"], arm_time_columns(a)))
         if a["stripped_lines"]:
             print("    stripped %d A-series line(s) from the slicer output: %s" % (
                 len(a["stripped_lines"]), ", ".join(str(l["line"]) for l in a["stripped_lines"])))
