@@ -11,7 +11,7 @@ from typing import Optional
 import numpy as np
 
 from ambots.coordinate.parking import APPROACH_MM, lift_height, safe_height
-from ambots.coordinate.steps import _order_runs, first_start, seg_time
+from ambots.coordinate.steps import _order_runs, first_start, reversed_segments, seg_time
 
 __all__ = ["Schedule", "Act"]
 
@@ -265,7 +265,7 @@ class Schedule:
         pts = np.array([p.start for p in segs] + [p.end for p in segs], dtype=float)
         clear = self.seams.clearance(n, pts)
         back = _order_runs(ps, tuple(pts[int(np.argmax(clear))]))
-        back = [p._replace(start=p.end, end=p.start) for p in reversed(back)]
+        back = reversed_segments(back)
         ends = self.seams.clearance(n, np.array([segs[-1].end, back[-1].end], dtype=float))
         return back if ends[1] > ends[0] + 1e-6 else segs
 

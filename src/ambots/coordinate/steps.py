@@ -20,7 +20,7 @@ from typing import Dict, List, NamedTuple, Optional
 
 import numpy as np
 
-from ambots.gcode import Segment, parse_gcode_text
+from ambots.gcode import Segment, _new_segment, parse_gcode_text
 from ambots.program import sanitize_gcode
 
 __all__ = ["Sliced", "Features", "read_sliced", "Wait", "Step", "END", "cut_segment", "seg_time", "seg_times"]
@@ -201,7 +201,7 @@ def _order_runs(segs, pos):
         d = np.sqrt(np.add.reduce(d * d, axis=1))      # np.linalg.norm(axis=1)'s arithmetic, without its overhead
         i, j = int(np.argmin(d[:R])), int(np.argmin(d[R:]))
         if d[R + j] < d[i] - 1e-9:
-            out.extend(s._replace(start=s.end, end=s.start) for s in reversed(runs[j]))
+            out.extend(reversed_segments(runs[j]))
             here = ends[j].copy()
             ends[j] = ends[R + j] = np.inf
         else:
@@ -209,6 +209,13 @@ def _order_runs(segs, pos):
             here = ends[R + i].copy()
             ends[i] = ends[R + i] = np.inf
     return out
+
+
+def reversed_segments(segs):
+    """``segs`` walked the other way: each segment's start and end swapped,
+    in reverse order (a Segment made as a tuple: ``_replace`` costs 2 us a
+    segment, 0.13 s of a 300,000-triangle model's plan together)."""
+    return [_new_segment(Segment, (s.end, s.start) + s[2:]) for s in reversed(segs)]
 
 
 def first_start(segs):
