@@ -432,6 +432,14 @@ def _plan(parts, sliced, programs, arms, how, cell):
 #: its part's program costs (on the demo the Kinova's half took 1.1 % longer
 #: than the UR10's; the Kinova alone takes 1.7 % longer)
 REBALANCE_SHARE = 0.004
+#: ... each arm's pace rounded to this many decimals: the busy times carry
+#: noise in their last bits (numpy's vector loops depend on where the arrays
+#: lie in memory), and the seam the split finds from them moved by as
+#: little, which the slicing and the bands then turned into different
+#: programs: the demo's plan was one of three (5,098.1, 5,098.5 or
+#: 5,100.0 s) from one run to the next in one process (a pace to 1e-6
+#: moves a 240 mm seam by at most 0.2 um)
+PACE_DIGITS = 6
 
 
 def _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle):
@@ -638,7 +646,8 @@ def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose
                 and max(busy.values()) > (1.0 + REBALANCE_SHARE) * min(busy.values())):
             # cooperating pays: split again, each arm's share sized by how long its part took
             mean = sum(busy.values()) / len(busy)
-            again = _cooperative(job, cell, arms, seam, settings, reach, {n: b / mean for n, b in busy.items()},
+            again = _cooperative(job, cell, arms, seam, settings, reach,
+                                 {n: round(b / mean, PACE_DIGITS) for n, b in busy.items()},
                                  slicer, whole, mode, idle)
             if again[3].makespan_s is not None and again[3].makespan_s < plan[3].makespan_s:
                 plan = again

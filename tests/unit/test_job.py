@@ -221,3 +221,18 @@ def test_a_job_is_planned_with_fewer_collections_and_the_collector_is_restored(t
     with pytest.raises(Exception):
         J.run_job(str(tmp_path / "missing.stl"), cell)
     assert gc.get_threshold() == before
+
+
+def test_a_job_planned_again_gives_the_same_programs(cell):
+    """The same model and cell give byte-identical programs every time: the
+    estimate's planned times differ in their last bits from one call to the
+    next (numpy's vector loops depend on memory alignment), and before the
+    fit kept the first of equal fits and the rebalancing pace was rounded
+    (``PACE_DIGITS``), the demo block's plan was one of three (5,098.1,
+    5,098.5 or 5,100.0 s) from one run to the next in one process."""
+    runs = []
+    for _ in range(3):
+        job = run_job(data_path("config", "models", "demo_block.stl"), cell)
+        assert job.chosen.arms == ["kinova", "ur10"]        # the plan that is split again
+        runs.append((round(job.chosen.makespan_s, 6), {n: p.text for n, p in job.programs.items()}))
+    assert runs[1] == runs[0] and runs[2] == runs[0]
