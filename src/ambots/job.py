@@ -139,8 +139,8 @@ class Job:
                "model_volume_mm3": signed_volume(self.mesh) if self.mesh is not None else None,
                "one_arm_estimate_s": self.one_arm_estimate_s, "plan": self.plan_summary(), "arms": {}}
         events = self.events()
-        chosen = self.chosen
-        timeline = (chosen.timeline if chosen is not None and chosen.programs is self.programs else None) or {}
+        built = self._built()
+        timeline = (built.timeline if built is not None else None) or {}
         out["overhang"] = self.overhang()
         out["repair"] = self.repair()
         out["seams"] = self.seam_setup()
@@ -184,13 +184,19 @@ class Job:
         out["path"] = self.repaired_path
         return out
 
+    def _built(self):
+        """The chosen :class:`Candidate` when :attr:`programs` are its
+        programs (its timing and events describe them), else None."""
+        chosen = self.chosen
+        return chosen if chosen is not None and chosen.programs is self.programs else None
+
     def events(self):
         """{arm name: G-code events of its program}: the parse that timed the
         chosen plan, else parsed now (once: kept)."""
-        chosen = self.chosen
-        kept = (chosen.events if chosen is not None and chosen.programs is self.programs else None) or {}
-        if chosen is not None and chosen.programs is self.programs:
-            chosen.events = kept
+        built = self._built()
+        kept = (built.events if built is not None else None) or {}
+        if built is not None:
+            built.events = kept
         for n in self.programs:
             if n not in kept:
                 kept[n] = self.programs[n].parse()
