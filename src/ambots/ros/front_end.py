@@ -30,9 +30,19 @@ class RosLink(ReliableLink):
                                               lambda msg: self.receive_progress(msg.data), queue_size=1)
         self._timer = WallTimer(retry_period, self.tick)      # wall time: a simulated clock may stand still
 
+    _closed = False
+
     def _publish(self, text):
+        if self._closed:                 # closing: a message that came in meanwhile is not answered
+            return
         self.log.sent(topics.HUB_TOPIC, text)
-        self._pub.publish(String(text))
+        try:
+            self._pub.publish(String(text))
+        except rospy.ROSException:
+            # the topic closed under a subscriber's callback (close() or the node going down)
+            if self._closed or rospy.is_shutdown():
+                return
+            raise
 
     def _on_message(self, msg):
         self.log.received("hub via " + topics.FRONT_END_TOPIC, msg.data)
@@ -49,6 +59,7 @@ class RosLink(ReliableLink):
         return False
 
     def close(self):
+        self._closed = True
         self._timer.shutdown()
         self._sub.unregister()
         self._progress_sub.unregister()
