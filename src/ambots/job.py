@@ -491,7 +491,9 @@ def _own_arms(programs, cell):
 def _alone(mesh, cell, arm, text, idle, settings, read, reach=None):
     """The whole model by ``arm`` alone: (parts, sliced, programs, Candidate).
     ``read``: {} shared by the arms, where the model's G-code ``text`` is
-    kept once read (:func:`ambots.coordinate.read_sliced`, on first use);
+    kept once read (:func:`ambots.coordinate.read_sliced`, on first use),
+    and what the first arm's program wrote of it, which the others copy
+    where theirs is the same (``written``: :class:`ambots.coordinate.emit.Emitter`);
     ``reach``: the job's reach checks, shared by its plans."""
     from ambots.coordinate import read_sliced
     from ambots.errors import AmbotsError
@@ -501,7 +503,8 @@ def _alone(mesh, cell, arm, text, idle, settings, read, reach=None):
         return None, None, None, Candidate([arm.name], "alone", None, str(exc))
     if "gcode" not in read:
         read["gcode"] = read_sliced(text, "%s.gcode" % arm.name)
-    programs = coordinate({arm.name: read["gcode"]}, parts, cell, "concurrent", idle=idle)
+    programs = coordinate({arm.name: read["gcode"]}, parts, cell, "concurrent", idle=idle,
+                          written=read.setdefault("written", []))
     return _plan(parts, {arm.name: text}, programs, [arm.name], "alone", cell)
 
 

@@ -417,3 +417,49 @@ def test_a_shorter_part_ends_its_turns_early(cell):
     for p in programs.values():
         text = p.lines
         assert not any(a.startswith("G1 E-") and b.startswith("G1 E-") for a, b in zip(text, text[1:]))
+
+
+def test_arms_alone_on_one_gcode_share_what_the_first_wrote(cell, tmp_path_factory, monkeypatch):
+    """Each arm alone prints the same G-code (the planner's alone plans):
+    the second arm's program copies the moves the first one wrote
+    (``written``) and must be, line for line and event for event, the
+    program written in full; the events it carries are the parser's reading
+    of its text.  Given a record of another G-code, nothing is copied and
+    the program is still the one written in full."""
+    import ambots.coordinate.emit as emit
+    from ambots.coordinate import build_programs, read_sliced
+    from ambots.partition import partition
+    from ambots.mesh import to_manifold
+    from ambots.slicer import SliceSettings, slice_mesh
+    mesh = trimesh.creation.box(extents=(60, 30, 4))
+    mesh.apply_translation([0, 0, 2])
+    text = slice_mesh(mesh, SliceSettings(), backend="builtin")
+    read = read_sliced(text, "box.gcode")
+    calls = []
+    real = emit._Writer.segments
+    monkeypatch.setattr(emit._Writer, "segments", lambda self, segs: (calls.append(1), real(self, segs))[1])
+
+    def alone(arm, written=None):
+        idle = [a for a in cell.arms if a.name != arm.name]
+        parts = partition(to_manifold(mesh), cell, [arm])
+        return build_programs({arm.name: read}, parts, cell, idle=idle, written=written)[arm.name]
+
+    first, second = cell.arms
+    written = []
+    alone(first, written)
+    written_by_first = len(calls)
+    assert written_by_first > 10 and len(written) == written_by_first
+    del calls[:]
+    copied = alone(second, written)
+    assert not calls                            # every layer's moves copied
+    full = alone(second)
+    assert copied.lines == full.lines and copied.lines[0] != alone(first).lines[0]
+    assert copied.parse() == full.parse() == list(parse_gcode_text(full.text, "%s.gcode" % second.name))
+    # a record of other segments (the text parsed again: equal segments, other objects): written in
+    # full, the same program
+    other = []
+    alone(first, other)
+    read = read_sliced(str(text), "again.gcode")
+    del calls[:]
+    again = alone(second, other)
+    assert len(calls) == written_by_first and again.lines == full.lines and again.parse() == full.parse()

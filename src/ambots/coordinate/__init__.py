@@ -77,7 +77,7 @@ __all__ = ["ArmProgram", "build_programs", "CHUNK_BANDS", "CHUNK_BAND_CHOICES", 
 
 
 def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=None, idle=(), slab_mm=None,
-                   chunk_bands=None):
+                   chunk_bands=None, written=None):
     """Build every arm's program.
 
     Parameters
@@ -103,6 +103,10 @@ def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=No
     chunk_bands : a scheduled timeline's chunk bands per seam (default
         :data:`CHUNK_BANDS`; :attr:`ArmProgram.phases` is that + 1); the
         job tries :data:`CHUNK_BAND_CHOICES` and keeps the fastest plan
+    written : a one-arm program: a list shared by the programs of the same
+        G-code for other arms alone, which the first fills and the others
+        copy their moves from where they are the same
+        (:class:`~ambots.coordinate.emit.Emitter`)
 
     Returns {arm name: :class:`ArmProgram`}, in the parts' order.
     """
@@ -114,7 +118,8 @@ def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=No
     read = {a.name: _read(sliced[a.name], "%s.gcode" % a.name) for a in arms}
     n_layers = max([max(layers) + 1 for layers in (r.layers for r in read.values()) if layers] or [0])
     if mode == "sequential" or (len(arms) == 1 and idle):
-        return sequential_programs(arms, read, park, idle, mode, moves=JointMoves(cell, arms), slab_mm=slab_mm)
+        return sequential_programs(arms, read, park, idle, mode, moves=JointMoves(cell, arms), slab_mm=slab_mm,
+                                   written=written)
     planes = seam_planes(parts)
     if zone_mm is None:
         zones = seam_zones_for(cell, arms, parts)

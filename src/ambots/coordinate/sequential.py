@@ -125,12 +125,14 @@ def turns_of(arms, pieces, bounds):
     return turns
 
 
-def sequential_programs(arms, read, park, idle=(), mode="sequential", moves=None, slab_mm=None):
+def sequential_programs(arms, read, park, idle=(), mode="sequential", moves=None, slab_mm=None, written=None):
     """{arm name: ArmProgram}, ``read``: {arm name: Sliced}; ``moves``: a
     :class:`~ambots.coordinate.parking.JointMoves` of the arms to check
     the first moves with (None: the lowest approach height, unchecked);
     ``slab_mm``: the most a round's slab may rise over its first layer
-    (default: the heads' gap less :data:`SLAB_MARGIN_MM`)."""
+    (default: the heads' gap less :data:`SLAB_MARGIN_MM`); ``written``: one
+    arm's program only: a list shared with the other arms' programs of the
+    same G-code, each alone (:class:`~ambots.coordinate.emit.Emitter`)."""
     arms = list(arms)
     pieces = {a.name: _layer_pieces(read[a.name].layers) for a in arms}
     tops = [z for a in arms for z, _ in pieces[a.name]]
@@ -182,7 +184,7 @@ def sequential_programs(arms, read, park, idle=(), mode="sequential", moves=None
             steps[name].append(Step(directives=hand))
     programs = {}
     for i, arm in enumerate(arms):
-        em = Emitter(arm, mode).steps(steps[arm.name])
+        em = Emitter(arm, mode, written=written if len(arms) == 1 else None).steps(steps[arm.name])
         n_turns = sum(1 for _, j, _ in turns if j == i)
         programs[arm.name] = ArmProgram(arm, mode, em.lines, read[arm.name].removed, len(read[arm.name].layers),
                                         max(1, n_turns), start_first=(i == 0), events=em.events())
