@@ -283,3 +283,78 @@ def test_the_demo_block_has_nothing_unsupported(tmp_path):
     m.apply_translation((0, 0, -m.bounds[0][2]))
     r = unsupported_extrusion([list(parse_gcode_text(slice_mesh(m), "demo.gcode"))])
     assert r["unsupported_mm"] == 0.0 and r["extruded_mm"] > 1e5
+
+
+def _brute_force_within(segs, pts, reach):
+    """Whether each point lies within ``reach`` of some segment, by its
+    distance to every segment (numpy, no tree)."""
+    import numpy as np
+    a, ab = segs[None, :, 0], (segs[:, 1] - segs[:, 0])[None]
+    p = pts[:, None, :]
+    L2 = (ab ** 2).sum(-1)
+    t = np.clip(((p - a) * ab).sum(-1) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
+    return (np.hypot(*np.moveaxis(a + ab * t[..., None] - p, -1, 0)).min(axis=1) <= reach)
+
+
+@pytest.mark.parametrize("dense", [False, True])
+def test_which_points_the_layer_below_reaches_is_the_exact_distance(dense):
+    """The layer-below test (:class:`ambots.overhang._Below`: a tree asked
+    about every other point, neighbours settled by the gap between points,
+    the few in between measured to nearby segments, the rest by GEOS)
+    against the distance to every segment: random segments, and paths
+    sampled as the rule samples them (0.2 mm apart) and random points,
+    many of them within 0.1 mm of the reach.  ``dense``: segments so close
+    together that more tree points than are measured lie near a point."""
+    import numpy as np
+    from ambots.overhang import _Below
+    rng = np.random.default_rng(7)
+    n = 60 if dense else 300
+    start = rng.uniform(-20, 20, (n, 2)) if not dense else rng.uniform(-1, 1, (n, 2))
+    end = start + rng.normal(0, 1.0 if dense else 6.0, (n, 2))
+    segs = np.stack([start, end], axis=1)
+    below = _Below(segs, W)
+    # paths: lines across the area, points 0.2 mm apart (odd points settled by their neighbours)
+    lines = []
+    for _ in range(40):
+        p0, d = rng.uniform(-22, 22, 2), rng.normal(0, 1, 2)
+        d /= np.hypot(*d)
+        lines.append(p0 + np.outer(np.arange(0, 30, 0.2), d))
+    # points at the reach of a segment, give or take 0.1 mm and a hair
+    k = rng.integers(0, n, 3000)
+    t = rng.uniform(0, 1, 3000)
+    normal = np.stack([-(end - start)[k, 1], (end - start)[k, 0]], axis=1)
+    normal /= np.maximum(np.hypot(*normal.T), 1e-12)[:, None]
+    off = W + rng.choice([-0.1, -0.05, -1e-6, 1e-6, 0.05, 0.1], 3000) * rng.uniform(0.0, 1.0, 3000)
+    rim = start[k] + (end - start)[k] * t[:, None] + normal * off[:, None]
+    pts = np.concatenate(lines + [rim, rng.uniform(-25, 25, (3000, 2))])
+    got = below.near(pts)
+    want = _brute_force_within(segs, pts, W)
+    assert got.sum() > 0.2 * len(pts) and (~got).sum() > 0.2 * len(pts)
+    assert (got == want).all(), np.flatnonzero(got != want)[:10]
+
+
+def test_the_layer_below_is_measured_exactly_where_its_tree_points_are_farthest():
+    """The worst cases of :class:`ambots.overhang._Below`'s shortcuts,
+    against the distance to every segment: paths 0.2 mm apart heading
+    straight at a line below, half-way between two of its tree points (where
+    they are farthest from the line: 0.1 mm along it), at every phase of the
+    samples against the reach; and a point within reach of a line whose
+    tree points are all farther than ten tiny beads' just beyond reach (the
+    nearest tree points are not enough: the line must still be found)."""
+    import numpy as np
+    from ambots.overhang import _Below
+    line = np.array([[[0.0, 0.0], [20.0, 0.0]]])
+    paths = [np.stack([np.full(40, x), phase + W + 0.2 * np.arange(-20, 20)], axis=1)
+             for x in (10.1, 10.05, 10.0) for phase in np.arange(0.0, 0.2, 0.005)]
+    pts = np.concatenate(paths + [p[::-1] for p in paths])
+    below = _Below(line, W)
+    assert (below.near(pts) == _brute_force_within(line, pts, W)).all()
+    # a point 0.449 mm from a line, half-way between its tree points (0.460 mm away), and ten
+    # 0.01 mm beads 0.455 mm away (20 tree points nearer than the line's)
+    p = np.array([[10.1, 0.449]])
+    ang = np.linspace(0.2, 1.3, 10)
+    centre = p[0] + 0.455 * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    beads = np.stack([centre, centre + [0.0, 0.01]], axis=1)
+    segs = np.concatenate([line, beads])
+    assert _brute_force_within(segs, p, W)[0]
+    assert _Below(segs, W).near(p)[0]
