@@ -155,12 +155,37 @@ def _check_binary_stl_count(path, name, max_triangles):
                            format(size, ",")))
 
 
+#: one triangle of a binary STL: normal, three corners (float32), attribute bytes
+_STL_TRIANGLE = np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
+
+
+def _read_binary_stl(path):
+    """A binary STL (its size is 84 bytes + 50 per triangle announced) as a
+    Trimesh, unprocessed: each triangle's three corners its own vertices, in
+    the file's order, as trimesh's loader gives them (float64), read in one
+    numpy call (0.04 s against trimesh's 0.2 s for 327,680 triangles); None
+    for any other file (ASCII STL: trimesh reads it)."""
+    with open(path, "rb") as f:
+        data = f.read()
+    if len(data) < 84:
+        return None
+    (count,) = struct.unpack("<I", data[80:84])
+    if len(data) != 84 + 50 * count:
+        return None
+    corners = np.frombuffer(data, _STL_TRIANGLE, count, 84)["corners"].reshape(-1, 3).astype(np.float64)
+    return trimesh.Trimesh(corners, np.arange(len(corners), dtype=np.int64).reshape(-1, 3), process=False)
+
+
 def _read(path, name, ext):
     """Read any supported file into one Trimesh, unprocessed."""
     try:
         # trimesh raises whatever its format parsers raise (ValueError,
         # BadZipFile, KeyError, struct.error...): all mean "not a mesh"
-        mesh = trimesh.load(path, file_type=ext, force="mesh", process=False)
+        mesh = _read_binary_stl(path) if ext == "stl" else None
+        if mesh is None:
+            mesh = trimesh.load(path, file_type=ext, force="mesh", process=False)
+    except OSError as exc:
+        raise MeshError("%s: cannot read: %s" % (name, exc.strerror or exc)) from None
     except Exception as exc:  # noqa: BLE001 -- boundary to third-party parsers
         raise MeshError("%s: not a readable %s file (%s: %s)" % (
             name, ext.upper(), type(exc).__name__, exc)) from None

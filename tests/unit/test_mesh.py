@@ -33,6 +33,29 @@ def refusal(path, **kwargs):
 
 # ------------------------------------------------------------------ formats
 
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_a_binary_stl_is_read_as_trimesh_reads_it(tmp_path, name):
+    """The binary STL reader (one numpy call) gives the vertices and
+    triangles of trimesh's own loader, to the bit, also for a header that
+    begins with "solid" (a binary file by its size) and for a triangle with
+    repeated corners; an ASCII STL is left to trimesh."""
+    from ambots.mesh import _read, _read_binary_stl
+    original = MODELS[name]()
+    original.vertices[original.faces[0, 1]] = original.vertices[original.faces[0, 0]]  # a degenerate triangle
+    path = write(tmp_path / "model.stl", original)
+    with open(path, "r+b") as f:                   # a header that looks like ASCII STL
+        f.write(b"solid made by a CAD tool")
+    ours = _read(path, "model.stl", "stl")
+    theirs = trimesh.load(path, file_type="stl", force="mesh", process=False)
+    assert _read_binary_stl(path) is not None and len(ours.faces) == len(original.faces)
+    assert ours.vertices.dtype == theirs.vertices.dtype and np.array_equal(ours.vertices, theirs.vertices)
+    assert np.array_equal(ours.faces, theirs.faces)
+    ascii_path = write(tmp_path / "ascii.stl", original, "stl_ascii")
+    assert _read_binary_stl(ascii_path) is None
+    assert np.array_equal(_read(ascii_path, "ascii.stl", "stl").faces,
+                          trimesh.load(ascii_path, file_type="stl", force="mesh", process=False).faces)
+
+
 @pytest.mark.parametrize("fmt", sorted(FORMATS))
 @pytest.mark.parametrize("name", sorted(MODELS))
 def test_round_trip_in_every_format(tmp_path, name, fmt):
