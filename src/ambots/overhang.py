@@ -37,8 +37,9 @@ Points are taken every ``step_mm`` along each extruding move (each sample
 stands for its stretch of the path); the distance to the layer below is
 the exact distance to its extrusion segments, not to samples of them
 (:class:`_Below`: a k-d tree of points on the segments settles most
-samples, GEOS's distance to the segments the few it cannot).  Millimetres
-throughout, the G-code frame.
+samples, the distance to the segments of their nearest tree points most
+of the others, GEOS's distance to all the segments the few left).
+Millimetres throughout, the G-code frame.
 """
 import math
 from typing import Dict, Iterable, List
