@@ -328,6 +328,12 @@ def _report_line(lines, is_wait, target):
     return target
 
 
+#: the :class:`_Writer`'s and its :class:`_Events`' state that what
+#: :meth:`_Writer.segments` writes depends on (:meth:`Emitter._state`)
+_WRITER_STATE = ("pos", "parked", "retracted")
+_EVENTS_STATE = ("x", "y", "z", "e", "feed", "rel_e", "layer", "layer_z", "markers", "warned", "ok")
+
+
 class Emitter:
     """One arm's program, written step by step (:class:`~ambots.coordinate.
     steps.Step`).  A wait is a placeholder (None) in ``lines`` until
@@ -354,10 +360,12 @@ class Emitter:
 
     def _state(self):
         """What the lines and events :meth:`_Writer.segments` writes depend
-        on besides the pieces: the writer's and its parser state's."""
+        on besides the pieces: how many lines and events there are, the
+        writer's state and its parser state's (:data:`_WRITER_STATE`,
+        :data:`_EVENTS_STATE`)."""
         w, ev = self.writer, self.writer.events
-        return (len(w.lines), w.pos, w.parked, w.retracted, len(ev.out), ev.x, ev.y, ev.z, ev.e, ev.feed, ev.rel_e,
-                ev.layer, ev.layer_z, ev.markers, ev.warned, ev.ok)
+        return ((len(w.lines), len(ev.out)) + tuple(getattr(w, a) for a in _WRITER_STATE)
+                + tuple(getattr(ev, a) for a in _EVENTS_STATE))
 
     def _pieces(self, pieces):
         """Write ``pieces`` (:meth:`_Writer.segments`), or copy them from
@@ -373,16 +381,16 @@ class Emitter:
             if was == before and len(seen) == len(pieces) and all(a is b for a, b in zip(seen, pieces)):
                 w.lines += lines
                 w.events.out += events
-                (_, w.pos, w.parked, w.retracted, _, ev_x, ev_y, ev_z, ev_e, ev_feed, ev_rel_e, ev_layer,
-                 ev_layer_z, ev_markers, ev_warned, ev_ok) = after
-                ev = w.events
-                ev.x, ev.y, ev.z, ev.e, ev.feed, ev.rel_e = ev_x, ev_y, ev_z, ev_e, ev_feed, ev_rel_e
-                ev.layer, ev.layer_z, ev.markers, ev.warned, ev.ok = ev_layer, ev_layer_z, ev_markers, ev_warned, ev_ok
+                n = len(_WRITER_STATE)
+                for a, v in zip(_WRITER_STATE, after[2:2 + n]):
+                    setattr(w, a, v)
+                for a, v in zip(_EVENTS_STATE, after[2 + n:]):
+                    setattr(w.events, a, v)
                 return
             self._copy = False           # once apart, written here from then on
         w.segments(pieces)
         if not self._copy and k == len(self.written):       # the first program of the G-code: recorded
-            self.written.append((pieces, before, w.lines[before[0]:], w.events.out[before[4]:], self._state()))
+            self.written.append((pieces, before, w.lines[before[0]:], w.events.out[before[1]:], self._state()))
 
     @property
     def lines(self):
