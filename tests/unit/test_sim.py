@@ -237,3 +237,34 @@ def test_the_simulation_plans_joint_moves_against_the_bed_as_the_firmware_does(c
     # the same program without the check goes into the bed: the check is what keeps it out
     bare = simulate(programs, cell, planner_kw={"is_valid": None})
     assert check_motion(bare, cell)["collisions"]["arm_bed"] > 0
+
+
+def test_an_arm_done_first_lifts_clear_of_the_part_while_its_neighbour_prints_on(cell, tmp_path):
+    """A ramp 200 mm long rising from 0 to 20 mm towards the UR10: the
+    Kinova's half ends at about 13 mm, and the UR10 prints on for about a
+    thousand seconds, up to 20 mm.  The Kinova retracts and lifts straight
+    up, above the whole part (its top from both programs' G-code), right
+    after its last extrusion, before it waits for anything, and stays up
+    there until its A7; run on one clock, no arm comes into contact with
+    the part (the continuous check: the box of every bead laid so far), as
+    a nozzle left at its last layer did (351 samples)."""
+    ramp = trimesh.Trimesh([[-100, -20, 0], [100, -20, 0], [100, 20, 0], [-100, 20, 0], [100, -20, 20],
+                            [100, 20, 20]],
+                           [[0, 2, 1], [0, 3, 2], [1, 2, 5], [1, 5, 4], [0, 1, 4], [3, 5, 2], [0, 4, 5], [0, 5, 3]])
+    ramp.fix_normals()
+    path = str(tmp_path / "ramp.stl")
+    ramp.export(path)
+    job = run_job(path, cell, list(cell.arms))
+    events = {n: list(parse_gcode_text(p.text, n + ".gcode")) for n, p in job.programs.items()}
+    top = max(s.end[2] for ev in events.values() for s in ev if type(s) is Segment and s.extrude)
+    lines = job.programs["kinova"].lines
+    segs = [s for s in events["kinova"] if type(s) is Segment]
+    last = max(s.line for s in segs if s.extrude and s.start[:2] != s.end[:2])
+    assert max(s.end[2] for s in segs if s.extrude) < top - 5.0          # the Kinova's half ends lower
+    after = [s for s in segs if s.line > last]
+    first_wait = next(i for i in range(last, len(lines)) if lines[i].startswith(";@A9"))
+    lifted = [s for s in after if s.line <= first_wait and s.end[2] > top]
+    assert lifted and after[0].e < 0                                     # retracted, then up over the part
+    assert all(s.end[2] >= lifted[0].end[2] for s in after if s.line > lifted[0].line)   # and up there
+    motion = check_motion(simulate(job.programs, cell), cell)
+    assert motion["collisions"] == {"arm_arm": 0, "arm_bed": 0, "arm_part": 0}

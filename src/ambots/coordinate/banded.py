@@ -79,17 +79,25 @@ def banded_programs(arms, read, park, n_layers, zone_mm, planes, colour, adjacen
         if parks_first[a.name]:
             em.step(Step(park=park[a.name], report=nb[0].id, mark="parked"))
         em.step(Step(waits=[Wait(other, "parked") for other in park_waits[a.name]]))
+        last = max([layer for layer in range(n_layers) for p in range(k) if phases[a.name, layer, p][1]] or [-1])
+        lift = None
         for layer in range(n_layers):
             for p in range(k):
                 if not _sweep_step(em, a, arms, phases, planes, bounds, nb, layer, p, k):
                     return None
+            if layer == last and em.pos is not None:
+                # its last layer with work: the neighbours may print on, higher (a ramp's
+                # tall end), for long; it lifts straight up at once, clear of the whole
+                # part, and goes through the layers left (their waits and reports, and
+                # moving aside from its seams where a band needs it) up there
+                lift = lift_height(moves, a.name, em.pos, park[a.name], top + APPROACH_MM, box)
+                em.step(Step(lift_to=lift))
         if n_layers and (colour[a.name] + n_layers - 1) % 2 == 0:
             # this arm ends the last layer away from its seams and its neighbours at
             # them: it parks only when they are done (a joint move to the park
             # position is not a straight line, and it would pass them at work)
             em.step(Step(waits=[Wait(other.name, END) for other in nb]))
-        # lift clear of the part, then go to the park position
-        lift = None if em.pos is None else lift_height(moves, a.name, em.pos, park[a.name], top + APPROACH_MM, box)
+        # clear of the part (lifted above), then to the park position
         em.step(Step(park=park[a.name], lift_to=lift))
         emitters[a.name] = em
     resolve_waits(emitters)

@@ -192,6 +192,9 @@ class _Writer:
         self.hop_mm = hop_mm
         #: the events of the lines written, as the parser would read them
         self.events = _Events()
+        #: lifted straight up off the part, retracted (:meth:`lift`): a travel at that
+        #: height only moves aside, without priming
+        self.lifted = False
 
     def emit(self, line):
         """A line that is not a move (a comment, a directive, the header's modes)."""
@@ -216,6 +219,12 @@ class _Writer:
         self.events.move(len(self.lines), x, y, z, e, f)
 
     def travel_to(self, p, feed=None):
+        if self.lifted and self.pos is not None and abs(self.pos[2] - p[2]) < 1e-6:
+            if not close(self.pos, p, atol=1e-6):      # aside, at the height lifted to
+                self.move("G0", p[0], p[1], f=feed or self.travel_feed)
+                self.pos = tuple(p)
+            return
+        self.lifted = False
         if self.parked:
             self.move("G0", p[0], p[1], p[2] + 10.0, f=feed or self.travel_feed)
             self.move("G0", z=p[2])
@@ -268,11 +277,29 @@ class _Writer:
             if not self.retracted:
                 self.move("G1", e=-self.retract_mm, f=self.retract_feed)
             z = self.pos[2] + lift_mm if lift_to is None else max(float(lift_to), self.pos[2])
-            self.move("G0", z=z, f=self.travel_feed)
+            if z != self.pos[2]:                 # not lifted there already (:meth:`lift`)
+                self.move("G0", z=z, f=self.travel_feed)
         x, y, z = xyz
         self.emit(directive(MoveTo(arm.id, round(float(x), 3), round(float(y), 3), round(float(z), 3))))
         self.parked = self.pos is not None
         self.retracted = self.retracted or self.parked
+
+    def lift(self, z):
+        """Retract (unless retracted) and lift the nozzle straight up to
+        ``z`` (mm), over where it is: off the part while the arm waits
+        (an arm done printing whose neighbours print on).  A travel at that
+        height then only moves aside, retracted; one to a lower point comes
+        down as any travel does; a later :meth:`park` goes on from there."""
+        if self.pos is None or self.parked:
+            return
+        if not self.retracted:
+            self.move("G1", e=-self.retract_mm, f=self.retract_feed)
+            self.retracted = True
+        z = max(float(z), self.pos[2])
+        if z != self.pos[2]:
+            self.move("G0", z=z, f=self.travel_feed)
+            self.pos = (self.pos[0], self.pos[1], z)
+        self.lifted = True
 
     def segments(self, segs):
         lines, move = self.lines, self.events.move
@@ -330,7 +357,7 @@ def _report_line(lines, is_wait, target):
 
 #: the :class:`_Writer`'s and its :class:`_Events`' state that what
 #: :meth:`_Writer.segments` writes depends on (:meth:`Emitter._state`)
-_WRITER_STATE = ("pos", "parked", "retracted")
+_WRITER_STATE = ("pos", "parked", "retracted", "lifted")
 _EVENTS_STATE = ("x", "y", "z", "e", "feed", "rel_e", "layer", "layer_z", "markers", "warned", "ok")
 
 
@@ -423,6 +450,8 @@ class Emitter:
             self._pieces(st.pieces)
         if st.park is not None:
             w.park(self.arm, st.park, lift_to=st.lift_to)
+        elif st.lift_to is not None:
+            w.lift(st.lift_to)
         if st.report is not None:
             w.emit(directive(SendPosition(st.report)))
         if st.mark is not None:

@@ -136,7 +136,8 @@ class Step:
     approach: Optional[float] = None
     pieces: list = field(default_factory=list)       #: segments printed
     park: Optional[tuple] = None                     #: then go to this park position (mm; A7)
-    #: lift the nozzle straight up to this height (mm) before the park's A7 (default: 10 mm up)
+    #: lift the nozzle straight up to this height (mm) before the park's A7 (default: 10 mm up);
+    #: without a park: retract and lift to it, and stay there
     lift_to: Optional[float] = None
     report: Optional[int] = None                     #: then report (A3) to this robot id (None: no report)
     mark: object = None                              #: then name the line reached (for other arms' waits)
