@@ -59,6 +59,13 @@ def models():
     ell = trimesh.boolean.union([trimesh.creation.box((200.0, 40.0, 8.0)).apply_translation((0, -55, 0)),
                                  trimesh.creation.box((40.0, 150.0, 8.0)).apply_translation((-80, 0, 0))],
                                 engine="manifold")
+    cross = trimesh.boolean.union([trimesh.creation.box((180.0, 30.0, 10.0)),
+                                   trimesh.creation.box((30.0, 180.0, 10.0))], engine="manifold")
+    # a ramp: 0 to 20 mm high along its 200 mm (the top layers only at one end)
+    wedge = trimesh.Trimesh([[-100, -20, 0], [100, -20, 0], [100, 20, 0], [-100, 20, 0], [100, -20, 20],
+                             [100, 20, 20]],
+                            [[0, 2, 1], [0, 3, 2], [1, 2, 5], [1, 5, 4], [0, 1, 4], [3, 5, 2], [0, 4, 5], [0, 5, 3]])
+    wedge.fix_normals()
     plate = hex_prism(300.0, 6.0)
     plate.apply_scale((276.0 / 300.0, 174.0 / (300.0 * math.sqrt(3) / 2), 1.0))
     out = {
@@ -68,6 +75,8 @@ def models():
         "sphere (100 mm)": _lifted(trimesh.creation.icosphere(4, 50.0)),
         "ring (140 mm)": _lifted(ring),
         "L (200 x 150 mm)": _lifted(ell),
+        "cross (180 x 180 mm)": _lifted(cross),
+        "wedge (200 x 40 x 0-20 mm)": _lifted(wedge),
         "hex plate (276 x 174 mm)": _lifted(plate),
         "plate 300 x 300 x 4": _lifted(trimesh.creation.box((300.0, 300.0, 4.0))),
         "box 300 x 300 x 20": _lifted(trimesh.creation.box((300.0, 300.0, 20.0))),
