@@ -97,7 +97,9 @@ def banded_programs(arms, read, park, n_layers, zone_mm, planes, colour, adjacen
             # them: it parks only when they are done (a joint move to the park
             # position is not a straight line, and it would pass them at work)
             em.step(Step(waits=[Wait(other.name, END) for other in nb]))
-        # clear of the part (lifted above), then to the park position
+        # clear of the part (lifted above, or now), then to the park position
+        if lift is None and em.pos is not None:
+            lift = lift_height(moves, a.name, em.pos, park[a.name], top + APPROACH_MM, box)
         em.step(Step(park=park[a.name], lift_to=lift))
         emitters[a.name] = em
     resolve_waits(emitters)

@@ -265,7 +265,7 @@ class _Writer:
             self.move("G0", z=p[2], f=feed)
         if self.retracted:
             self.move("G1", e=self.retract_mm, f=self.retract_feed)
-        self.parked = self.retracted = False
+        self.parked = self.retracted = self.lifted = False
         self.pos = tuple(p)
 
     def park(self, arm, xyz, lift_mm=10.0, lift_to=None):
@@ -281,6 +281,7 @@ class _Writer:
                 self.move("G0", z=z, f=self.travel_feed)
         x, y, z = xyz
         self.emit(directive(MoveTo(arm.id, round(float(x), 3), round(float(y), 3), round(float(z), 3))))
+        self.lifted = False
         self.parked = self.pos is not None
         self.retracted = self.retracted or self.parked
 
