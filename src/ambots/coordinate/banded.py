@@ -80,6 +80,7 @@ def banded_programs(arms, read, park, n_layers, zone_mm, planes, colour, adjacen
             em.step(Step(park=park[a.name], report=nb[0].id, mark="parked"))
         em.step(Step(waits=[Wait(other, "parked") for other in park_waits[a.name]]))
         last = max([layer for layer in range(n_layers) for p in range(k) if phases[a.name, layer, p][1]] or [-1])
+        clear = lambda: lift_height(moves, a.name, em.pos, park[a.name], top + APPROACH_MM, box)  # noqa: E731
         lift = None
         for layer in range(n_layers):
             for p in range(k):
@@ -90,7 +91,7 @@ def banded_programs(arms, read, park, n_layers, zone_mm, planes, colour, adjacen
                 # tall end), for long; it lifts straight up at once, clear of the whole
                 # part, and goes through the layers left (their waits and reports, and
                 # moving aside from its seams where a band needs it) up there
-                lift = lift_height(moves, a.name, em.pos, park[a.name], top + APPROACH_MM, box)
+                lift = clear()
                 em.step(Step(lift_to=lift))
         if n_layers and (colour[a.name] + n_layers - 1) % 2 == 0:
             # this arm ends the last layer away from its seams and its neighbours at
@@ -99,7 +100,7 @@ def banded_programs(arms, read, park, n_layers, zone_mm, planes, colour, adjacen
             em.step(Step(waits=[Wait(other.name, END) for other in nb]))
         # clear of the part (lifted above, or now), then to the park position
         if lift is None and em.pos is not None:
-            lift = lift_height(moves, a.name, em.pos, park[a.name], top + APPROACH_MM, box)
+            lift = clear()
         em.step(Step(park=park[a.name], lift_to=lift))
         emitters[a.name] = em
     resolve_waits(emitters)
