@@ -14,7 +14,9 @@ corners get a cross; a row of arms along a beam gets parallel planes across
 it, also when the arms stand on alternate sides).  The
 weights w_i move the planes until the arms' estimated print times balance.
 The cuts are manifold3d half-space trims, so the parts are closed volumes
-whose union is the model.
+whose union is the model.  ``turn``: the sites turned about the model's
+centre first, so every seam turns with them (two arms: the planner tries
+the seam turned both ways, :data:`ambots.job.SEAM_TURNS_DEG`).
 
 Seams: ``straight`` (the parts meet at the plane) or ``interlock`` (also
 called ``overlap``): layer by layer the boundary alternates ``d`` either
@@ -35,7 +37,8 @@ import numpy as np
 from ambots.errors import MeshError
 from ambots.units import MM, m_to_mm
 
-__all__ = ["Part", "PrintEstimate", "partition", "arm_sites_mm", "seam_sites_mm", "estimate_print_time"]
+__all__ = ["Part", "PrintEstimate", "partition", "arm_sites_mm", "seam_sites_mm", "estimate_print_time", "is_beam",
+           "turned"]
 
 #: a bed whose long side is at least this many times its short side is a beam:
 #: the power diagram's sites are clipped to it (:func:`seam_sites_mm`)
@@ -95,6 +98,13 @@ def arm_sites_mm(cell, arms):
     return m_to_mm(pts[:, :2])
 
 
+def is_beam(cell):
+    """Whether the cell's bed is a beam: at least :data:`BEAM_ASPECT` times
+    as long as it is wide."""
+    sx, sy = m_to_mm(np.asarray(cell.bed.size[:2], dtype=float))
+    return max(sx, sy) >= BEAM_ASPECT * min(sx, sy)
+
+
 def seam_sites_mm(cell, arms):
     """The sites of the power diagram, (N, 2) mm in the bed frame: the arms'
     bases projected onto the bed (:func:`arm_sites_mm`), on a beam (a bed at
@@ -105,10 +115,17 @@ def seam_sites_mm(cell, arms):
     slanted seam are 2-3 times that far apart along the beam, so the seam
     zone would cover most of each part."""
     sites = arm_sites_mm(cell, arms)
-    sx, sy = m_to_mm(np.asarray(cell.bed.size[:2], dtype=float))
-    if max(sx, sy) >= BEAM_ASPECT * min(sx, sy):
+    if is_beam(cell):
+        sx, sy = m_to_mm(np.asarray(cell.bed.size[:2], dtype=float))
         sites = np.clip(sites, [-sx / 2, -sy / 2], [sx / 2, sy / 2])
     return sites
+
+
+def turned(points, centre, turn):
+    """(N, 2) ``points`` turned by ``turn`` (rad, counter-clockwise) about
+    ``centre`` (2,)."""
+    c, s = np.cos(turn), np.sin(turn)
+    return (np.asarray(points, dtype=float) - centre) @ np.array([[c, s], [-s, c]]) + centre
 
 
 def _planes(sites, weights, i, shift=0.0):
@@ -135,7 +152,8 @@ def _cut(model, planes):
 
 
 def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tolerance=None,
-              max_iter=80, check_reach=True, reach_cache=None, layers=None, interlock_mm=None, pace=None):
+              max_iter=80, check_reach=True, reach_cache=None, layers=None, interlock_mm=None, pace=None,
+              turn=0.0):
     """Split ``model`` (manifold3d.Manifold, mm, bed frame) among ``arms`` (default:
     every arm of ``cell``) and return one :class:`Part` per arm, in order.
 
@@ -151,6 +169,9 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
     is safe); otherwise :class:`MeshError` says which arm misses by how much.
     ``reach_cache``: a dict kept by the caller across calls on the same model
     (a job's plans): a point already checked for an arm is not solved again.
+    ``turn`` (rad, counter-clockwise): the sites turned about the centre of
+    the model's bounding box (:func:`turned`) before the split, so the
+    seams between the parts turn by as much (several arms).
 
     ``seam``: ``straight``, or ``interlock`` / ``overlap`` (the same, see the
     module docstring): then ``layers`` = (z_tops, heights) (L,) mm, the
@@ -166,10 +187,12 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
     if len(arms) == 1:
         parts = [Part(arms[0], model, [], estimate_print_time(model, est), [])]
     else:
-        sites = seam_sites_mm(cell, arms)
         rates = [float((pace or {}).get(a.name, 1.0)) for a in arms]
         lo, hi = np.array(model.bounding_box()[:2]), np.array(model.bounding_box()[3:5])
         centre = (lo + hi) / 2
+        sites = seam_sites_mm(cell, arms)
+        if turn:
+            sites = turned(sites, centre, float(turn))
         size2 = float(np.sum((hi - lo) ** 2))
         # start with every boundary through the model's centre
         w = np.sum((sites - centre) ** 2, axis=1)

@@ -159,12 +159,14 @@ def _row(label, cell, path, simulate_runs):
     job = run_job(path, cell)
     wall = time.perf_counter() - t0
     chosen, single = job.chosen, _best_single(job)
-    together = next((c for c in job.candidates if len(c.arms) == len(cell.arms)), None)
+    # all the arms with the seams straight (the planner may choose them turned: ambots.job.SEAM_TURNS_DEG)
+    together = next((c for c in job.candidates if len(c.arms) == len(cell.arms) and not c.seam_turn_deg), None)
+    how = "+".join(chosen.arms) + (" seam %+g deg" % chosen.seam_turn_deg if chosen.seam_turn_deg else "")
     ratio = lambda c: (c.makespan_s / single.makespan_s) if c is not None and c.makespan_s and single else math.nan
-    line = ("%-32s %-10s best single %s %8s s | %d arms %8s s = %.3f | chosen %-14s %.3f (plan %.0f s wall)"
+    line = ("%-32s %-10s best single %s %8s s | %d arms %8s s = %.3f | chosen %-26s %.3f (plan %.0f s wall)"
             % (label, cell.name, single.arms[0] if single else "-", "%.0f" % single.makespan_s if single else "-",
                len(cell.arms), "%.0f" % together.makespan_s if together and together.makespan_s else "-",
-               ratio(together), "+".join(chosen.arms), ratio(chosen), wall))
+               ratio(together), how, ratio(chosen), wall))
     print(line, flush=True)
     if simulate_runs:
         seeds = SEEDS if len(chosen.arms) > 1 else SEEDS[:1]     # one arm: nothing to meet but the bed and part

@@ -157,6 +157,40 @@ def test_the_planner_never_chooses_a_slower_plan(cell, tmp_path):
     assert summary["best_single_arm_s"] == pytest.approx(chosen.makespan_s, abs=0.1)
 
 
+def test_an_L_is_printed_with_the_seam_turned_when_that_is_faster(cell, tmp_path):
+    """The seam straight across an L (160 x 120 mm, 30 mm legs) runs along
+    its upright leg, all of it within the seam zone, so the arms take
+    turns there; cooperating pays, so the planner also makes the plan with
+    the seam turned +-30 deg and keeps the fastest.  The simulation on one
+    clock agrees that the plan chosen (a turned seam) is faster than the
+    straight one and finds no contact, as planned and with every move of
+    each arm 0.5-2x slower at random."""
+    from ambots.job import SEAM_TURNS_DEG, plan_lines
+    from ambots.sim import check_motion
+    leg_x = _box((160.0, 30.0, 0.6))
+    leg_x.apply_translation((0.0, -45.0, 0.0))
+    leg_y = _box((30.0, 120.0, 0.6))
+    leg_y.apply_translation((-65.0, 0.0, 0.0))
+    path = _model(tmp_path, "ell", trimesh.boolean.union([leg_x, leg_y], engine="manifold"))
+    job = run_job(path, cell)
+    both = {c.seam_turn_deg: c for c in job.candidates if len(c.arms) == 2}
+    assert set(both) == {0.0, *SEAM_TURNS_DEG}
+    chosen = job.chosen
+    assert chosen.seam_turn_deg != 0.0 and len(chosen.arms) == 2
+    assert chosen.makespan_s == min(c.makespan_s for c in job.candidates)
+    (n, _), = job.parts[0].planes                      # the Kinova's side, turned from -x
+    a = np.radians(chosen.seam_turn_deg)
+    assert n == pytest.approx([-np.cos(a), -np.sin(a), 0.0], abs=1e-9)
+    assert "seam turned %+g deg" % chosen.seam_turn_deg in plan_lines(job.plan_summary())[0]
+    turned = simulate(job.programs, cell)
+    straight = simulate(both[0.0].programs, cell)
+    assert turned.finished and turned.makespan_s < straight.makespan_s
+    assert chosen.makespan_s == pytest.approx(turned.makespan_s, rel=0.03)
+    for res in (turned, simulate(job.programs, cell, slow={n: (0.5, 2.0) for n in job.programs}, seed=1)):
+        motion = check_motion(res, cell)
+        assert res.finished and sum(motion["collisions"].values()) == 0, motion
+
+
 def test_a_long_part_is_printed_by_both_arms_and_a_flag_forces_the_arms(cell, tmp_path):
     """The demo's shape (240 mm across the seam): both arms, faster than
     the best arm alone by the simulation too; ``arms`` given: that set,

@@ -55,6 +55,31 @@ def test_parts_union_is_the_model_and_print_times_balance(cell, name, seam):
     assert total == pytest.approx(model.volume(), rel=1e-6)     # nothing printed twice
 
 
+@pytest.mark.parametrize("deg", [30.0, -30.0])
+def test_a_turned_seam_is_the_straight_one_turned_and_still_tiles_the_model_in_balance(cell, deg):
+    """``turn``: the seam plane's normal is the straight seam's turned by
+    the angle (rotation matrix by hand), the parts still tile the model
+    with nothing printed twice, and their estimated times balance."""
+    model = (m3.Manifold.cube([160, 30, 4]).translate([-80, -60, 0])
+             + m3.Manifold.cube([30, 120, 4]).translate([-80, -60, 0]))          # an L
+    straight = partition(model, cell)
+    parts = partition(model, cell, turn=np.radians(deg))
+    (n0, _), = straight[0].planes
+    (n1, _), = parts[0].planes
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    assert n1 == pytest.approx([c * n0[0] - s * n0[1], s * n0[0] + c * n0[1], 0.0], abs=1e-9)
+    assert parts[1].planes[0][0] == pytest.approx(-n1, abs=1e-9)
+    assert sum(p.volume for p in parts) == pytest.approx(model.volume(), rel=1e-6)
+    assert abs((union(parts) - model).volume()) <= 1e-6 * model.volume()
+    assert max(p.est_time_s for p in parts) / min(p.est_time_s for p in parts) <= 1.01
+    # each arm still keeps the side facing it: its part's points lie on its side of the plane
+    for part in parts:
+        (n, off), = part.planes
+        lo, hi = np.array(part.manifold.bounding_box()[:3]), np.array(part.manifold.bounding_box()[3:])
+        corners = np.array([[x, y, 0.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])])
+        assert (corners @ n - off).max() > 0.0
+
+
 def test_each_arm_gets_the_side_facing_it(cell):
     kinova, ur10 = partition(cube(), cell)
     # Kinova stands at -x of the bed, the UR10 at +x
