@@ -126,6 +126,7 @@ class Job:
         alone = self.one_arm_estimate_s
         return {"arms": list(chosen.arms) if chosen else [a.name for a in self.arms],
                 "how": chosen.how if chosen else self.mode,
+                "seam_turn_deg": float(chosen.seam_turn_deg) if chosen else 0.0,
                 "makespan_estimate_s": None if chosen is None or chosen.makespan_s is None
                 else round(float(chosen.makespan_s), 1),
                 "best_single_arm_s": None if alone is None else round(float(alone), 1),

@@ -3,6 +3,8 @@
 runner executing a program on its own clock, the offline simulation of all
 arms on one clock (every move planned, the hub's messages), and hand-worked
 schedules."""
+import re
+
 import numpy as np
 import pytest
 import trimesh
@@ -165,7 +167,7 @@ def test_an_L_is_printed_with_the_seam_turned_when_that_is_faster(cell, tmp_path
     clock agrees that the plan chosen (a turned seam) is faster than the
     straight one and finds no contact, as planned and with every move of
     each arm 0.5-2x slower at random."""
-    from ambots.job import SEAM_TURNS_DEG, plan_lines
+    from ambots.job import SEAM_TURNS_DEG, _cooperative, plan_lines
     from ambots.sim import check_motion
     leg_x = _box((160.0, 30.0, 0.6))
     leg_x.apply_translation((0.0, -45.0, 0.0))
@@ -181,6 +183,14 @@ def test_an_L_is_printed_with_the_seam_turned_when_that_is_faster(cell, tmp_path
     (n, _), = job.parts[0].planes                      # the Kinova's side, turned from -x
     a = np.radians(chosen.seam_turn_deg)
     assert n == pytest.approx([-np.cos(a), -np.sin(a), 0.0], abs=1e-9)
+    zone = lambda c: {float(re.search(r"; seam zone ([0-9.]+) mm", p.text).group(1))      # noqa: E731
+                      for p in c.programs.values()}
+    assert all(min(zone(both[d])) >= max(zone(both[0.0])) for d in SEAM_TURNS_DEG)    # the floor
+    arms = [cell.arm(n) for n in chosen.arms]
+    wider = _cooperative(job, cell, arms, "straight", None, {}, None, "builtin", None, "concurrent", [],
+                         chosen.seam_turn_deg, 80.0)[3]                  # a floor over the zone: it holds
+    assert zone(wider) == {80.0} and wider.makespan_s > chosen.makespan_s
+    assert job.plan_summary()["seam_turn_deg"] == chosen.seam_turn_deg
     assert "seam turned %+g deg" % chosen.seam_turn_deg in plan_lines(job.plan_summary())[0]
     turned = simulate(job.programs, cell)
     straight = simulate(both[0.0].programs, cell)
