@@ -490,23 +490,38 @@ SEAM_TURNS_DEG = (30.0, -30.0)
 
 def _turned_plans(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle, straight):
     """The plans of two ``arms`` together with the seam turned by each of
-    :data:`SEAM_TURNS_DEG` (``pace``: each arm's, from the plan with the
-    seam straight, or None); one an arm cannot reach is a plan that is not
-    timed, with the reason as its note.  Each keeps at least the seam zone
-    of the ``straight`` plan's parts: the zone of a turned seam comes from
-    the clearance of sampled poses (the arms no longer face each other
-    across it, :func:`ambots.collision.seam_zones_mm`), and turned by 90 deg
-    those gave the 10 mm margin where the arms met (session 30)."""
+    :data:`SEAM_TURNS_DEG` (``pace``: each arm's, from the ``straight``
+    plan, or None), made side by side (:func:`ambots.parallel.fork_map`):
+    [(None, sliced, programs, Candidate)], without parts (a manifold cannot
+    be pickled: the chosen one's are cut again, :func:`split`), and without
+    programs for one no faster than the straight plan (it cannot be
+    chosen).  One an arm cannot reach is a plan that is not timed, with the
+    reason as its note.  Each keeps at least the seam zone of the straight
+    plan's parts: the zone of a turned seam comes from the clearance of
+    sampled poses (the arms no longer face each other across it,
+    :func:`ambots.collision.seam_zones_mm`), and turned by 90 deg those gave
+    the 10 mm margin where the arms met (session 30)."""
     from ambots.coordinate import seam_zones_for
-    floor = max(seam_zones_for(cell, arms, straight).values())
-    out = []
-    for deg in SEAM_TURNS_DEG:
+    from ambots.parallel import fork_map
+    floor = max(seam_zones_for(cell, arms, straight[0]).values())
+    beat = straight[3].makespan_s
+
+    def turned(deg):
         try:
-            out.append(_cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle, deg,
-                                    floor))
+            _, sliced, programs, c = _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode,
+                                                  idle, deg, floor)
         except MeshError as exc:         # a part out of an arm's reach
-            out.append((None, None, None, Candidate([a.name for a in arms], mode, None, str(exc),
-                                                    seam_turn_deg=deg)))
+            return None, None, Candidate([a.name for a in arms], mode, None, str(exc), seam_turn_deg=deg)
+        if c.makespan_s is None or c.makespan_s >= beat:
+            return None, None, replace(c, programs=None, events=None)
+        return {n: _Text(t) for n, t in sliced.items()}, programs, c
+
+    out = []
+    for sliced, programs, c in fork_map(turned, SEAM_TURNS_DEG):
+        if programs is not None:
+            sliced = {n: t.text for n, t in sliced.items()}
+            c.programs = _own_arms(programs, cell)
+        out.append((None, sliced, programs, c))
     return out
 
 
@@ -679,6 +694,7 @@ def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose
     idle = [a for a in cell.arms if a.name not in {b.name for b in arms}]
     plans = []
     reach = {}                           # the reach checks of this mesh, shared by the plans
+    pace = None                          # the arms' pace of a plan split again (:data:`REBALANCE_SHARE`)
     whole = None
     if slicer == "builtin":              # the whole model sliced once for the parts and the arms alone
         from ambots.slicer import SliceSettings, WholeModel
@@ -706,7 +722,6 @@ def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose
         timed = [p[3].makespan_s for p in alone if p[3].makespan_s]
         busy = plan[3].busy_s
         pays = bool(timed) and plan[3].makespan_s is not None and plan[3].makespan_s < min(timed)
-        pace = None
         if (pays and busy and len(busy) == len(arms)
                 and max(busy.values()) > (1.0 + REBALANCE_SHARE) * min(busy.values())):
             # cooperating pays: split again, each arm's share sized by how long its part took
@@ -717,7 +732,7 @@ def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose
                 plan = again
         plans.append(plan)
         if pays and len(arms) == 2 and not is_beam(cell):
-            plans += _turned_plans(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle, plan[0])
+            plans += _turned_plans(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle, plan)
         plans += alone
     if len(arms) == 1:                   # one arm: its plan (an arm that cannot reach the model is an error)
         parts = split(job.mesh, cell, arms, seam, settings)
@@ -727,9 +742,11 @@ def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose
     best = _best([p[3] for p in plans]) if choose else 0
     if best is None:                     # nothing could be timed: the arms asked for, as before
         best = 0
-    if plans[best][0] is None and plans[best][2] is not None:     # an arm alone, planned in a worker
-        plans[best] = (split(job.mesh, cell, [cell.arm(plans[best][3].arms[0])], settings=settings, reach=reach),
-                       ) + tuple(plans[best][1:])
+    if plans[best][0] is None and plans[best][2] is not None:     # planned in a worker: its parts cut again
+        c = plans[best][3]
+        parts = (split(job.mesh, cell, [cell.arm(c.arms[0])], settings=settings, reach=reach) if len(c.arms) == 1
+                 else split(job.mesh, cell, arms, seam, settings, reach, pace, c.seam_turn_deg))     # seam turned
+        plans[best] = (parts,) + tuple(plans[best][1:])
     job.parts, job.sliced, job.programs = plans[best][0], plans[best][1], plans[best][2]
     if plans[best][3].arms != [a.name for a in arms]:
         job.arms = [cell.arm(n) for n in plans[best][3].arms]

@@ -103,7 +103,8 @@ def test_report_has_every_key(run, model, cell):
         assert a["moves"] == r.stats.moves > 0
         assert a["extrude_mm"] > 0 and a["travel_mm"] > 0
         assert a["print_time_s"] > 0 and a["idle_time_s"] >= 0
-        assert a["print_time_s"] + a["idle_time_s"] <= rep["makespan_s"] + 1e-3
+        # three figures each rounded to 1 ms: the sum may pass the makespan by 1.5 ms
+        assert a["print_time_s"] + a["idle_time_s"] <= rep["makespan_s"] + 1.5e-3 + 1e-9
         assert a["ik_failures"] == 0
         assert 0 < a["max_path_error_mm"] <= 0.1
     assert rep["makespan_s"] > 0
