@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, replace
 from typing import Dict, List
 
 from ambots import data_path
-from ambots.errors import ConfigError, MeshError
+from ambots.errors import AmbotsError, ConfigError, MeshError
 from ambots.partition import is_beam
 from ambots.units import m_to_mm
 
@@ -422,7 +422,6 @@ def _timed(programs, cell):
     :meth:`ambots.coordinate.ArmProgram.parse`), for the timing and later
     the chosen plan's figures (:meth:`Job.summary`)."""
     from ambots.estimate import estimate_programs
-    from ambots.errors import AmbotsError
     try:
         events = {n: p.parse() for n, p in programs.items()}
         est = estimate_programs(programs, cell, events=events)
@@ -495,8 +494,9 @@ def _turned_plans(job, cell, arms, seam, settings, reach, pace, slicer, whole, m
     [(None, sliced, programs, Candidate)], without parts (a manifold cannot
     be pickled: the chosen one's are cut again, :func:`split`), and without
     programs for one no faster than the straight plan (it cannot be
-    chosen).  One an arm cannot reach is a plan that is not timed, with the
-    reason as its note.  Each keeps at least the seam zone of the straight
+    chosen).  One that cannot be made (a part out of an arm's reach: an
+    :class:`~ambots.errors.AmbotsError`) is a plan that is not timed, with
+    the reason as its note.  Each keeps at least the seam zone of the straight
     plan's parts: the zone of a turned seam comes from the clearance of
     sampled poses (the arms no longer face each other across it,
     :func:`ambots.collision.seam_zones_mm`), and turned by 90 deg those gave
@@ -510,7 +510,7 @@ def _turned_plans(job, cell, arms, seam, settings, reach, pace, slicer, whole, m
         try:
             _, sliced, programs, c = _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode,
                                                   idle, deg, floor)
-        except MeshError as exc:         # a part out of an arm's reach
+        except AmbotsError as exc:       # a part out of an arm's reach, an arm that cannot reach a move
             return None, None, Candidate([a.name for a in arms], mode, None, str(exc), seam_turn_deg=deg)
         if c.makespan_s is None or c.makespan_s >= beat:
             return None, None, replace(c, programs=None, events=None)
@@ -565,7 +565,6 @@ def _alone(mesh, cell, arm, text, idle, settings, read, reach=None):
     where theirs is the same (``written``: :class:`ambots.coordinate.emit.Emitter`);
     ``reach``: the job's reach checks, shared by its plans."""
     from ambots.coordinate import read_sliced
-    from ambots.errors import AmbotsError
     try:
         parts = split(mesh, cell, [arm], settings=settings, reach=reach)
     except AmbotsError as exc:
