@@ -478,12 +478,11 @@ def _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mo
 #: model's centre; :func:`ambots.partition.partition`'s ``turn``), and the
 #: fastest plan is chosen: the seam perpendicular to the line between the
 #: arms can run along a bar of the part, all of it within the seam zone,
-#: where the arms take turns (session 30, estimates, the best of +-30 deg
-#: against the straight seam: an L of 200 x 150 mm 7,743 -> 5,929 s, a
-#: cross of 180 mm 8,777 -> 7,235 s, a 140 mm ring 4,798 -> 4,682 s; the
-#: hex plate, the ramp, the demo: the straight seam stays the fastest).
-#: Turned further, an arm's base comes near its seam plane, and the
-#: arms reach past each other along the seam
+#: where the arms take turns (session 30: an L, a cross, a ring and a plate gain
+#: 1-24 %, the demo, a ramp and a hex plate keep the straight seam:
+#: ``bench_cooperation``, docs/benchmarks.md).  Turned further, an arm's
+#: base comes near its seam plane, and the arms reach past each other
+#: along the seam
 SEAM_TURNS_DEG = (30.0, -30.0)
 
 
