@@ -330,7 +330,8 @@ def makespan(times, arms, start_first=None):
     docstring).  ``times``: {arm name: :class:`ProgramTimes`}; ``arms``: the
     arm objects (name, id); ``start_first``: {name: bool}, arms the front end
     starts (default: all).  Returns {"makespan_s", "arms": {name: {"start_s",
-    "finish_s", "busy_s", "idle_s"}}}.  Raises :class:`EstimateError` if
+    "finish_s", "busy_s", "idle_s", "layer_busy_s" (the s it moves on each
+    layer of its program, (L,))}}}.  Raises :class:`EstimateError` if
     the arms would wait for each other for ever."""
     by_id = {a.id: a.name for a in arms}
     start_first = start_first or {}
@@ -348,8 +349,10 @@ def makespan(times, arms, start_first=None):
     out = {"makespan_s": max((s.done for s in state.values()), default=0.0), "arms": {}}
     for n, s in state.items():
         busy = float(s.pt.d.sum())
+        layer = np.maximum(np.asarray(s.pt.layer_of_line), 0)        # lines before the first layer: in it
         out["arms"][n] = {"start_s": float(s.start), "finish_s": float(s.done), "busy_s": busy,
-                          "idle_s": float(s.done - s.start - busy)}
+                          "idle_s": float(s.done - s.start - busy),
+                          "layer_busy_s": np.bincount(layer, weights=s.pt.d) if len(layer) else np.zeros(0)}
     return out
 
 

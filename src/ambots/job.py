@@ -75,6 +75,16 @@ class Candidate:
     #: the seams turned by this many degrees, counter-clockwise, from the
     #: arms' power diagram (:data:`SEAM_TURNS_DEG`)
     seam_turn_deg: float = 0.0
+    #: a stepped seam (:mod:`ambots.seam_steps`): per layer, mm the seam moves
+    #: along the first arm's plane normal from the straight seam (None: straight)
+    seam_offsets: object = field(default=None, repr=False)
+
+    @property
+    def seam_steps_mm(self):
+        """[least, most] mm a stepped seam moves from the straight seam on
+        its layers, or None."""
+        o = self.seam_offsets
+        return None if o is None else [round(float(min(o)), 1), round(float(max(o)), 1)]
 
     @property
     def busy_s(self):
@@ -84,7 +94,7 @@ class Candidate:
     def as_dict(self):
         return {"arms": list(self.arms), "how": self.how,
                 "makespan_s": None if self.makespan_s is None else round(float(self.makespan_s), 1),
-                "note": self.note, "seam_turn_deg": float(self.seam_turn_deg)}
+                "note": self.note, "seam_turn_deg": float(self.seam_turn_deg), "seam_steps_mm": self.seam_steps_mm}
 
 
 @dataclass
@@ -127,6 +137,7 @@ class Job:
         return {"arms": list(chosen.arms) if chosen else [a.name for a in self.arms],
                 "how": chosen.how if chosen else self.mode,
                 "seam_turn_deg": float(chosen.seam_turn_deg) if chosen else 0.0,
+                "seam_steps_mm": chosen.seam_steps_mm if chosen else None,
                 "makespan_estimate_s": None if chosen is None or chosen.makespan_s is None
                 else round(float(chosen.makespan_s), 1),
                 "best_single_arm_s": None if alone is None else round(float(alone), 1),
@@ -257,10 +268,12 @@ def arm_time_columns(arm):
     return " ".join("%8s" % ("-" if arm.get(k) is None else "{:,.0f}".format(arm[k])) for k in ("busy_s", "done_s"))
 
 
-def _how(arms, how, turn_deg=0.0):
+def _how(arms, how, turn_deg=0.0, steps=None):
     if len(arms) == 1:
         return "%s alone" % arms[0]
     turn = ", seam%s turned %+g deg" % ("" if len(arms) == 2 else "s", turn_deg) if turn_deg else ""
+    if steps:
+        turn += ", seam stepped per layer (%+.1f to %+.1f mm)" % tuple(steps)
     return "%d arms %s%s (%s)" % (len(arms), how, turn, ", ".join(arms))
 
 
@@ -272,8 +285,9 @@ def plan_lines(plan, brief=False):
         return []
     chosen, rest = plan["candidates"][0], plan["candidates"][1:]
     fmt = lambda t: "not timed" if t is None else "%s s" % format(round(t), ",")
-    turn = lambda c: c.get("seam_turn_deg") or 0.0     # noqa: E731 -- job.json before session 30: none
-    head = "plan: %s: %s" % (_how(chosen["arms"], chosen["how"], turn(chosen)), fmt(chosen["makespan_s"]))
+    # job.json before session 30 has no turn, before session 31 no steps
+    how = lambda c: _how(c["arms"], c["how"], c.get("seam_turn_deg") or 0.0, c.get("seam_steps_mm"))  # noqa: E731
+    head = "plan: %s: %s" % (how(chosen), fmt(chosen["makespan_s"]))
     if plan.get("forced"):
         head += (" (sequential mode: the arms in turn, no other plan considered)" if chosen["how"] == "sequential"
                  else " (arms given: no other plan considered)")
@@ -285,13 +299,12 @@ def plan_lines(plan, brief=False):
             best["arms"][0], fmt(best["makespan_s"]), best["makespan_s"] / chosen["makespan_s"])
     if brief:
         if rest:
-            lines.append("  also considered: " + "; ".join("%s %s" % (_how(c["arms"], c["how"], turn(c)),
-                                                                    fmt(c["makespan_s"])) for c in rest))
+            lines.append("  also considered: " + "; ".join(
+                "%s %s%s" % (how(c), fmt(c["makespan_s"]), " (%s)" % c["note"] if c.get("note") else "") for c in rest))
         return lines
     for c in rest:
         why = " (%s)" % c["note"] if c.get("note") else ""
-        lines.append("  also considered: %s: %s%s" % (_how(c["arms"], c["how"], turn(c)), fmt(c["makespan_s"]),
-                                                       why))
+        lines.append("  also considered: %s: %s%s" % (how(c), fmt(c["makespan_s"]), why))
     if rest:
         lines.append("  (makespans by the one timing law, ambots.estimate; fewer arms unless more are "
                      "faster by more than %d %%)" % round(100 * TIE_SHARE))
@@ -350,22 +363,30 @@ def shipped_cells():
     return out
 
 
-def split(mesh, cell, arms, seam="straight", settings=None, reach=None, pace=None, turn_deg=0.0):
+def split(mesh, cell, arms, seam="straight", settings=None, reach=None, pace=None, turn_deg=0.0, offsets=None):
     """Step 2: one part per arm, balanced, each inside its arm's reach
     (``reach``: a dict shared by the splits of one mesh, see
     :func:`ambots.partition.partition`'s ``reach_cache``; ``pace``: its
     arms' relative speeds, see there; ``turn_deg``: the seams turned by
-    this many degrees, counter-clockwise, there ``turn``)."""
+    this many degrees, counter-clockwise, there ``turn``; ``offsets``: two
+    arms' seam stepped by this much (mm) on each layer,
+    :func:`ambots.seam_steps.stepped_parts`, each part checked for reach again)."""
     from ambots.mesh import to_manifold
-    from ambots.partition import PrintEstimate, partition
+    from ambots.partition import PrintEstimate, check_part_reach, partition
     from ambots.slicer import SliceSettings, layer_heights
     s = settings or SliceSettings()
     est = PrintEstimate(s.bead_width_mm, s.layer_height_mm, s.perimeters, s.infill_density)
     model = to_manifold(mesh)
     # an interlocking seam's slabs are the slicer's layers
     layers = layer_heights(float(model.bounding_box()[5]), s)
-    return partition(model, cell, arms, seam=seam, est=est, reach_cache=reach, layers=layers, pace=pace,
-                     turn=math.radians(turn_deg))
+    parts = partition(model, cell, arms, seam=seam, est=est, reach_cache=reach, layers=layers, pace=pace,
+                      turn=math.radians(turn_deg))
+    if offsets is not None:
+        from ambots.seam_steps import stepped_parts
+        parts = stepped_parts(model, parts, offsets, *layers)
+        for part in parts:
+            check_part_reach(cell, part, reach)
+    return parts
 
 
 def slice_parts(parts, slicer="builtin", settings=None, whole=None, seam="straight", clip=True):
@@ -430,14 +451,15 @@ def _timed(programs, cell):
     if est["errors"]:
         return None, "; ".join(est["errors"].values()), events, None
     return est["makespan_s"], None, events, {
-        n: {"start_s": a["start_s"], "busy_s": a["busy_s"], "idle_s": a["idle_s"], "done_s": a["finish_s"]}
+        n: {"start_s": a["start_s"], "busy_s": a["busy_s"], "idle_s": a["idle_s"], "done_s": a["finish_s"],
+            "layer_busy_s": a["layer_busy_s"]}
         for n, a in est["arms"].items()}
 
 
-def _plan(parts, sliced, programs, arms, how, cell, turn_deg=0.0):
+def _plan(parts, sliced, programs, arms, how, cell, turn_deg=0.0, offsets=None):
     """A plan's (parts, sliced, programs, Candidate), timed."""
     t, why, events, timeline = _timed(programs, cell)
-    return parts, sliced, programs, Candidate(arms, how, t, why, programs, events, timeline, turn_deg)
+    return parts, sliced, programs, Candidate(arms, how, t, why, programs, events, timeline, turn_deg, offsets)
 
 
 #: a plan of several arms that is faster than each arm alone is split again
@@ -458,19 +480,19 @@ PACE_DIGITS = 6
 
 
 def _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle, turn_deg=0.0,
-                 zone_floor=None):
+                 zone_floor=None, offsets=None):
     """The plan of ``arms`` together: (parts, sliced, programs, Candidate);
-    ``turn_deg``: the seams turned (:func:`split`); ``zone_floor`` (mm):
-    the least seam zone of its pair (two arms)."""
-    parts = split(job.mesh, cell, arms, seam, settings, reach, pace, turn_deg)
+    ``turn_deg``: the seams turned, ``offsets``: stepped (:func:`split`);
+    ``zone_floor`` (mm): the least seam zone of its pair (two arms)."""
+    parts = split(job.mesh, cell, arms, seam, settings, reach, pace, turn_deg, offsets)
     sliced = slice_parts(parts, slicer, settings, whole or job.mesh, seam)
     zone = None
     if zone_floor is not None:
         from ambots.coordinate import seam_zones_for
         zone = max([zone_floor] + list(seam_zones_for(cell, arms, parts).values()))
     programs = coordinate(sliced, parts, cell, mode, idle=idle, zone_mm=zone)
-    return _fastest_schedule(_plan(parts, sliced, programs, [a.name for a in arms], mode, cell, turn_deg), cell,
-                             mode, idle)
+    return _fastest_schedule(_plan(parts, sliced, programs, [a.name for a in arms], mode, cell, turn_deg, offsets),
+                             cell, mode, idle)
 
 
 #: a plan of two arms that beats each arm alone is also made with the seam
@@ -486,42 +508,83 @@ def _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mo
 SEAM_TURNS_DEG = (30.0, -30.0)
 
 
-def _turned_plans(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle, straight):
+#: a plan with the seam turned or stepped is chosen over the straight one only
+#: when faster by more than this share: closer, the estimate cannot tell them
+#: apart (session 31, the demo: stepped 5,097 s against 5,098 s estimated,
+#: 5,182 s against 5,180 s simulated)
+VARIANT_SHARE = 0.002
+
+
+def _seam_plans(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle, straight, straight_pace):
     """The plans of two ``arms`` together with the seam turned by each of
-    :data:`SEAM_TURNS_DEG` (``pace``: each arm's, from the ``straight``
-    plan, or None), made side by side (:func:`ambots.parallel.fork_map`):
-    [(None, sliced, programs, Candidate)], without parts (a manifold cannot
-    be pickled: the chosen one's are cut again, :func:`split`), and without
-    programs for one no faster than the straight plan (it cannot be
-    chosen).  One that cannot be made (a part out of an arm's reach: an
+    :data:`SEAM_TURNS_DEG` and, where the layers' work lies unevenly about
+    the straight seam, stepped per layer (:mod:`ambots.seam_steps`, from the
+    ``straight`` plan's time on each layer: :func:`_stepped_offsets`);
+    ``pace``: each arm's, from the ``straight`` plan, or None (the stepped
+    seam's parts are the straight plan's: ``straight_pace``, the pace that
+    plan was split with, or None).  Made side by
+    side (:func:`ambots.parallel.fork_map`): [(None, sliced, programs,
+    Candidate)], without parts (a manifold cannot be pickled: the chosen
+    one's are cut again, :func:`split`), and without programs for one no
+    faster than the straight plan by more than :data:`VARIANT_SHARE` (it
+    cannot be chosen; a note says so when it is faster by less).  One that cannot be
+    made (a part out of an arm's reach: an
     :class:`~ambots.errors.AmbotsError`) is a plan that is not timed, with
     the reason as its note.  Each keeps at least the seam zone of the straight
     plan's parts: the zone of a turned seam comes from the clearance of
     sampled poses (the arms no longer face each other across it,
     :func:`ambots.collision.seam_zones_mm`), and turned by 90 deg those gave
-    the 10 mm margin where the arms met (session 30)."""
+    the 10 mm margin where the arms met (session 30); a stepped seam's grows
+    by its largest step (:func:`ambots.coordinate.build_programs`)."""
     from ambots.coordinate import seam_zones_for
     from ambots.parallel import fork_map
     floor = max(seam_zones_for(cell, arms, straight[0]).values())
-    beat = straight[3].makespan_s
+    beat = straight[3].makespan_s * (1.0 - VARIANT_SHARE)
+    specs = [(deg, None, pace) for deg in SEAM_TURNS_DEG]
+    offsets = _stepped_offsets(straight, whole, seam, floor)
+    if offsets is not None:
+        specs.append((0.0, offsets, straight_pace))
 
-    def turned(deg):
+    def variant(spec):
+        deg, steps, rates = spec
         try:
-            _, sliced, programs, c = _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode,
-                                                  idle, deg, floor)
+            _, sliced, programs, c = _cooperative(job, cell, arms, seam, settings, reach, rates, slicer, whole,
+                                                  mode, idle, deg, floor, steps)
         except AmbotsError as exc:       # a part out of an arm's reach, an arm that cannot reach a move
-            return None, None, Candidate([a.name for a in arms], mode, None, str(exc), seam_turn_deg=deg)
+            return None, None, Candidate([a.name for a in arms], mode, None, str(exc), seam_turn_deg=deg,
+                                         seam_offsets=steps)
+        if c.makespan_s is not None and beat <= c.makespan_s < straight[3].makespan_s:
+            c = replace(c, note="within %g %% of the plan with the seam straight, which is kept"
+                        % (100 * VARIANT_SHARE))
         if c.makespan_s is None or c.makespan_s >= beat:
             return None, None, replace(c, programs=None, events=None)
         return {n: _Text(t) for n, t in sliced.items()}, programs, c
 
     out = []
-    for sliced, programs, c in fork_map(turned, SEAM_TURNS_DEG):
+    for sliced, programs, c in fork_map(variant, specs):
         if programs is not None:
             sliced = {n: t.text for n, t in sliced.items()}
             c.programs = _own_arms(programs, cell)
         out.append((None, sliced, programs, c))
     return out
+
+
+def _stepped_offsets(straight, whole, seam, zone):
+    """The per-layer offsets of a stepped seam (:func:`ambots.seam_steps.
+    plan_offsets`) from the ``straight`` plan of two arms, each layer shared
+    only where it reaches half the ``zone`` (mm) past the seam on both
+    sides (a layer narrower than the zone about its seam is printed in
+    turns, no faster); None without the built-in slicer's whole model, with
+    another seam kind, or when the seam would hardly move."""
+    from ambots.seam_steps import plan_offsets
+    from ambots.seams import seam_kind
+    parts, sliced, _, c = straight
+    if whole is None or seam_kind(seam) != "straight" or c.timeline is None or parts is None:
+        return None
+    busy = {n: a.get("layer_busy_s") for n, a in c.timeline.items()}
+    if any(b is None for b in busy.values()):
+        return None
+    return plan_offsets(parts, sliced, busy, whole.toolpaths(), zone / 2.0)
 
 
 def _fastest_schedule(plan, cell, mode, idle):
@@ -693,6 +756,7 @@ def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose
     plans = []
     reach = {}                           # the reach checks of this mesh, shared by the plans
     pace = None                          # the arms' pace of a plan split again (:data:`REBALANCE_SHARE`)
+    plan_pace = None                     # ... if that plan was kept
     whole = None
     if slicer == "builtin":              # the whole model sliced once for the parts and the arms alone
         from ambots.slicer import SliceSettings, WholeModel
@@ -727,10 +791,11 @@ def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose
             pace = {n: round(b / mean, PACE_DIGITS) for n, b in busy.items()}
             again = _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle)
             if again[3].makespan_s is not None and again[3].makespan_s < plan[3].makespan_s:
-                plan = again
+                plan, plan_pace = again, pace
         plans.append(plan)
         if pays and len(arms) == 2 and not is_beam(cell):
-            plans += _turned_plans(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle, plan)
+            plans += _seam_plans(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle, plan,
+                                 plan_pace)
         plans += alone
     if len(arms) == 1:                   # one arm: its plan (an arm that cannot reach the model is an error)
         parts = split(job.mesh, cell, arms, seam, settings)
@@ -743,7 +808,8 @@ def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose
     if plans[best][0] is None and plans[best][2] is not None:     # planned in a worker: its parts cut again
         c = plans[best][3]
         parts = (split(job.mesh, cell, [cell.arm(c.arms[0])], settings=settings, reach=reach) if len(c.arms) == 1
-                 else split(job.mesh, cell, arms, seam, settings, reach, pace, c.seam_turn_deg))     # seam turned
+                 else split(job.mesh, cell, arms, seam, settings, reach,       # turned, or stepped
+                            pace if c.seam_offsets is None else plan_pace, c.seam_turn_deg, c.seam_offsets))
         plans[best] = (parts,) + tuple(plans[best][1:])
     job.parts, job.sliced, job.programs = plans[best][0], plans[best][1], plans[best][2]
     if plans[best][3].arms != [a.name for a in arms]:
@@ -754,8 +820,9 @@ def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose
 
 def _best(candidates):
     """Index of the fastest candidate; fewer arms win unless more are faster
-    by more than TIE_SHARE.  None if none could be timed."""
-    timed = [(i, c) for i, c in enumerate(candidates) if c.makespan_s is not None]
+    by more than TIE_SHARE.  None if none could be timed.  A candidate
+    without programs (a seam plan not kept, :func:`_seam_plans`) is not chosen."""
+    timed = [(i, c) for i, c in enumerate(candidates) if c.makespan_s is not None and c.programs is not None]
     if not timed:
         return None
     fastest = min(c.makespan_s for _, c in timed)

@@ -30,7 +30,7 @@ Units: millimetres in the bed frame (the G-code frame: origin at the centre
 of the bed's top surface, z up).
 """
 from dataclasses import dataclass, field
-from typing import List, Tuple
+from typing import List, Optional, Tuple
 
 import numpy as np
 
@@ -76,6 +76,9 @@ class Part:
     #: the arm on the other side of each plane (``planes[j]`` is the boundary
     #: with arm ``neighbours[j]``, an arm name), in the same order as ``planes``
     neighbours: List[str] = field(default_factory=list)
+    #: a stepped seam (:mod:`ambots.seam_steps`): per slicer layer, mm added
+    #: to the offset of each of :attr:`planes` on that layer (None: straight)
+    layer_offsets: Optional[np.ndarray] = None
 
     @property
     def volume(self):
@@ -248,6 +251,13 @@ def partition(model, cell, arms=None, seam="straight", est=PrintEstimate(), tole
         for part in parts:
             _check_reach(cell, part, reach_cache)
     return parts
+
+
+def check_part_reach(cell, part, cache=None):
+    """Refuse (MeshError) a part whose arm cannot reach every vertex of it
+    with the nozzle down, as :func:`partition` checks its parts (there:
+    what is solved, and why that is safe)."""
+    _check_reach(cell, part, cache)
 
 
 #: side (mm) of the cubes of the bed-frame grid of :func:`_check_reach`: a vertex

@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-__all__ = ["prisms", "clip_layer", "clip_paths"]
+__all__ = ["prisms", "at_layer", "clip_layer", "clip_paths"]
 
 
 def prisms(parts):
@@ -30,7 +30,8 @@ def prisms(parts):
     (:class:`ambots.partition.Part`): the half-planes of each part's prism,
     ``side`` +1 keeping n . p - offset >= 0, -1 keeping < 0 (the
     neighbour's plane, whose arm name sorts first); None if a plane is not
-    vertical or a neighbour's plane is missing."""
+    vertical or a neighbour's plane is missing.  A stepped seam's offset is
+    per layer, (L,) (:func:`at_layer`)."""
     by_name = {p.arm.name: p for p in parts}
     out = {}
     for p in parts:
@@ -39,15 +40,29 @@ def prisms(parts):
             if abs(float(n[2])) > 1e-12:
                 return None
             if p.arm.name < other or other not in by_name:
-                planes.append((np.array([float(n[0]), float(n[1])]), float(off), 1))
+                planes.append((np.array([float(n[0]), float(n[1])]), _offsets(off, p), 1))
                 continue
             theirs = by_name[other]
             if p.arm.name not in theirs.neighbours:
                 return None
             m, o = theirs.planes[theirs.neighbours.index(p.arm.name)]
-            planes.append((np.array([float(m[0]), float(m[1])]), float(o), -1))
+            planes.append((np.array([float(m[0]), float(m[1])]), _offsets(o, theirs), -1))
         out[p.arm.name] = planes
     return out
+
+
+def _offsets(off, part):
+    """A plane's offset: a float, or per layer (L,) for a stepped seam's part
+    (:attr:`ambots.partition.Part.layer_offsets`)."""
+    steps = getattr(part, "layer_offsets", None)
+    return float(off) if steps is None else float(off) + np.asarray(steps, dtype=float)
+
+
+def at_layer(planes, index):
+    """A prism's ``planes`` (:func:`prisms`) on layer ``index``: a stepped
+    seam's per-layer offsets taken there (the last beyond them)."""
+    return [(n, off if np.ndim(off) == 0 else float(off[min(index, len(off) - 1)]), side)
+            for n, off, side in planes]
 
 
 def clip_layer(layer, planes, link_max=None):

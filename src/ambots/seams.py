@@ -217,10 +217,17 @@ def _line_intervals(polygons, c0, u, n2):
     return list(zip(ts[0::2], ts[1::2]))
 
 
+def offset_at(o, k):
+    """A seam plane's offset on layer ``k``: ``o`` itself, or ``o[k]`` for a
+    stepped seam's (L,) offsets (:mod:`ambots.seam_steps`; the last beyond)."""
+    return float(o) if np.ndim(o) == 0 else float(o[min(int(k), len(o) - 1)])
+
+
 def seam_samples(model, planes, z_tops, heights, step_mm=0.2):
     """Sample points of every seam face: ``model`` (Manifold, mm), ``planes``
     {(a, b): (n, o)} the seam plane between parts a and b seen from a (n . p
-    - o >= 0 on a's side; :func:`ambots.coordinate.zones.seam_planes`).
+    - o >= 0 on a's side; :func:`ambots.coordinate.zones.seam_planes`; ``o``
+    per layer (L,) for a stepped seam).
     For each pair a < b (by name), the points of the plane inside the
     model's section at each layer's mid-height, every ``step_mm`` along the
     plane, where a and b are the parts meeting (on a's side of a's other
@@ -237,9 +244,10 @@ def seam_samples(model, planes, z_tops, heights, step_mm=0.2):
             n, o = planes[a, b]
             n2 = np.asarray(n, dtype=float)[:2]
             n2 = n2 / np.linalg.norm(n2)
-            u, c0 = np.array([-n2[1], n2[0]]), n2 * o
+            u = np.array([-n2[1], n2[0]])
             pts = []
-            for z, polys in sections:
+            for k, (z, polys) in enumerate(sections):
+                c0 = n2 * offset_at(o, k)
                 for t0, t1 in _line_intervals(polys, c0, u, n2):
                     t = np.arange(t0 + step_mm / 2.0, t1, step_mm)
                     xy = c0 + t[:, None] * u
@@ -248,7 +256,7 @@ def seam_samples(model, planes, z_tops, heights, step_mm=0.2):
             keep = np.ones(len(P), dtype=bool)
             for (x, y), (nn, oo) in planes.items():
                 if (x in (a, b)) and y not in (a, b):
-                    keep &= P @ np.asarray(nn, dtype=float) - oo >= -1e-6
+                    keep &= P @ np.asarray(nn, dtype=float) - np.min(oo) >= -1e-6
             out[a, b] = (P[keep], np.array([n2[0], n2[1], 0.0]))
     return out
 
@@ -301,10 +309,10 @@ def bonded_share(model, planes, deposit, bed_pose, z_tops, heights, bead_width, 
     for (a, b), (P, n) in seam_samples(model, planes, z_tops, heights, step_mm).items():
         if not len(P):
             continue
-        # only the beads near the plane can straddle it
-        o = float(P[0] @ n)
-        near = (np.minimum(beads[0] @ n, beads[1] @ n) - o <= bead_width) & \
-               (np.maximum(beads[0] @ n, beads[1] @ n) - o >= -bead_width)
+        # only the beads near the plane (a stepped seam's: near it on some layer) can straddle it
+        o = P @ n
+        near = (np.minimum(beads[0] @ n, beads[1] @ n) - o.max() <= bead_width) & \
+               (np.maximum(beads[0] @ n, beads[1] @ n) - o.min() >= -bead_width)
         mask = bonded_mask(P, n, tuple(x[near] for x in beads), bead_width / 4.0)
         out["%s/%s" % (a, b)] = {"bonded_share": round(float(mask.mean()), 4), "samples": int(len(P))}
     return out
@@ -316,17 +324,24 @@ def seam_setup(parts, seam, settings, z_max_mm):
     does): the seam kind, the planes between the ``parts`` ({"a/b": {"normal",
     "offset_mm"}} seen from a), the slicer's layer tops and thicknesses up
     to ``z_max_mm`` (the model's top), the bead width and the lap band's
-    reach (the interlock's depth plus a bead).  None for fewer than two
-    parts with work."""
+    reach (the interlock's depth plus a bead); a stepped seam's planes also
+    carry ``layer_offsets_mm``, added to ``offset_mm`` on each layer
+    (:mod:`ambots.seam_steps`).  None for fewer than two parts with work."""
     from ambots.coordinate.zones import seam_planes
     from ambots.slicer import layer_heights
     live = [p for p in parts if not p.empty]
     if len(live) < 2:
         return None
     z_tops, heights = layer_heights(float(z_max_mm), settings)
+    planes = {"%s/%s" % k: {"normal": [round(float(x), 12) for x in n], "offset_mm": float(o)}
+              for k, (n, o) in seam_planes(live).items()}
+    for p in live:                       # a stepped seam: the offset added on each layer, seen from each side
+        if getattr(p, "layer_offsets", None) is not None:
+            for other in p.neighbours:
+                if "%s/%s" % (p.arm.name, other) in planes:
+                    planes["%s/%s" % (p.arm.name, other)]["layer_offsets_mm"] = [float(x) for x in p.layer_offsets]
     return {"seam": seam,
-            "planes": {"%s/%s" % k: {"normal": [round(float(x), 12) for x in n], "offset_mm": float(o)}
-                       for k, (n, o) in seam_planes(live).items()},
+            "planes": planes,
             "z_tops_mm": [float(z) for z in z_tops], "heights_mm": [float(h) for h in heights],
             "bead_width_mm": float(settings.bead_width_mm),
             "reach_mm": float(interlock_depth_mm(settings.bead_width_mm, settings.layer_height_mm)
@@ -372,7 +387,9 @@ def seam_figures(setup, model, deposit, bed_pose, by_arm=None):
     order).  ({}, {}) without a setup."""
     if not setup:
         return {}, {}
-    planes = {tuple(k.split("/")): (np.asarray(v["normal"], dtype=float), float(v["offset_mm"]))
+    planes = {tuple(k.split("/")): (np.asarray(v["normal"], dtype=float),
+                                    float(v["offset_mm"]) + np.asarray(v["layer_offsets_mm"], dtype=float)
+                                    if v.get("layer_offsets_mm") else float(v["offset_mm"]))
               for k, v in setup["planes"].items()}
     z_tops = np.asarray(setup["z_tops_mm"], dtype=float)
     shares = bonded_share(model, planes, deposit, bed_pose, z_tops, np.asarray(setup["heights_mm"], dtype=float),
@@ -405,15 +422,16 @@ def lap_order(by_arm, planes, reach_mm, z_tops):
                 p0, p1, t = (np.asarray(x, dtype=float) for x in by_arm[arm])
                 if not len(t):
                     continue
-                s0, s1 = p0 @ n - o, p1 @ n - o
+                # the slicer's layer k holds z in (top k-1, top k]: a support layer laid low under an
+                # overhang (its z gap) is still its layer, not the one below
+                layer = np.minimum(np.searchsorted(z_tops, p1[:, 2] - 1e-3), len(z_tops) - 1)
+                ok = o if np.ndim(o) == 0 else np.asarray(o, dtype=float)[np.minimum(layer, len(o) - 1)]
+                s0, s1 = p0 @ n - ok, p1 @ n - ok
                 near = (np.minimum(s0, s1) <= reach_mm) & (np.maximum(s0, s1) >= -reach_mm)
                 mid = (p0 + p1) / 2.0
                 for (x, y), (nn, oo) in planes.items():      # at this seam, not where the plane runs elsewhere
                     if x == arm and y not in (a, b):
-                        near &= mid @ np.asarray(nn, dtype=float) - oo >= -reach_mm
-                # the slicer's layer k holds z in (top k-1, top k]: a support layer laid low under an
-                # overhang (its z gap) is still its layer, not the one below
-                layer = np.minimum(np.searchsorted(z_tops, p1[:, 2] - 1e-3), len(z_tops) - 1)
+                        near &= mid @ np.asarray(nn, dtype=float) - np.min(oo) >= -reach_mm
                 for k in np.unique(layer[near]):
                     sel = near & (layer == k)
                     first[arm, k], last[arm, k] = float(t[sel].min()), float(t[sel].max())

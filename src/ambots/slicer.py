@@ -295,7 +295,7 @@ class BuiltinSlicer:
         ``layers`` (:meth:`toolpaths`); ``clip``: only what lies in this
         prism (:func:`ambots.seam_clip.clip_layer`), e.g. an arm's part of
         the whole model's toolpaths."""
-        from ambots.seam_clip import clip_layer
+        from ambots.seam_clip import at_layer, clip_layer
         s = self.settings
         writer = GcodeWriter(s, name)
 
@@ -305,7 +305,7 @@ class BuiltinSlicer:
                     SPARSE_INFILL: infill_link_mm(SPARSE_INFILL, sp / max(s.infill_density, 1e-9), s.bead_width_mm)}
         for lp in layers:
             if clip is not None:
-                lp = clip_layer(lp, clip, link_max=links(lp.height))   # plan_island's
+                lp = clip_layer(lp, at_layer(clip, lp.index), link_max=links(lp.height))   # plan_island's
                 if lp is None:
                     continue
             z, h = lp.z, lp.height

@@ -12,7 +12,7 @@ from ambots import data_path
 from ambots.config import default_cell_path, load_cell
 from ambots.errors import MeshError
 from ambots.gcode import Segment, read_gcode, summarize_file
-from ambots.job import run_job, write_job
+from ambots.job import VARIANT_SHARE, run_job, write_job
 
 
 @pytest.fixture(scope="module")
@@ -236,3 +236,9 @@ def test_a_job_planned_again_gives_the_same_programs(cell):
         assert job.chosen.arms == ["kinova", "ur10"]        # the plan that is split again
         runs.append((round(job.chosen.makespan_s, 6), {n: p.text for n, p in job.programs.items()}))
     assert runs[1] == runs[0] and runs[2] == runs[0]
+    # a seam turned or stepped is kept only when clearly faster (VARIANT_SHARE); one faster by less says so
+    chosen = job.chosen
+    for c in job.candidates[1:]:
+        if len(c.arms) == 2 and c.makespan_s is not None and c.makespan_s < chosen.makespan_s:
+            assert c.programs is None and "which is kept" in c.note
+            assert c.makespan_s >= chosen.makespan_s * (1.0 - VARIANT_SHARE)

@@ -86,3 +86,19 @@ def test_a_missing_capture_fails_a_live_run_only(tmp_path):
 def test_no_report_at_all_fails_with_a_reason(tmp_path):
     code, out = _run(tmp_path, None, None, False, "--capture")
     assert code == 1 and "no report.json" in out
+
+
+def test_a_seam_plan_not_kept_says_why_in_the_brief_lines_too():
+    """A stepped seam faster by less than the share the estimate can tell
+    apart: its note is on the run summaries' line, not only in ``slice``'s."""
+    from ambots.job import plan_lines
+    note = "within 0.2 % of the plan with the seam straight, which is kept"
+    plan = {"arms": ["kinova", "ur10"], "how": "concurrent", "forced": False, "seam_steps_mm": None,
+            "candidates": [{"arms": ["kinova", "ur10"], "how": "concurrent", "makespan_s": 5098.4},
+                           {"arms": ["kinova", "ur10"], "how": "concurrent", "makespan_s": 5097.3,
+                            "seam_steps_mm": [-1.1, 0.8], "note": note},
+                           {"arms": ["ur10"], "how": "alone", "makespan_s": 9598.1}]}
+    brief = plan_lines(plan, brief=True)
+    assert brief[1] == ("  also considered: 2 arms concurrent, seam stepped per layer (-1.1 to +0.8 mm) (kinova, ur10) "
+                        "5,097 s (%s); ur10 alone 9,598 s" % note)
+    assert "5,097 s (%s)" % note in plan_lines(plan)[1]

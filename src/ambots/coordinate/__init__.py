@@ -69,7 +69,9 @@ from ambots.coordinate.parking import JointMoves, home_positions_mm, park_positi
 from ambots.coordinate.sequential import sequential_programs
 from ambots.coordinate.steps import Sliced, _order_runs, read_sliced
 from ambots.coordinate.timeline import timeline_programs
-from ambots.coordinate.zones import adjacent_arms, seam_planes, seam_zone_for, seam_zones_for, two_colours
+from ambots.coordinate.zones import (LayerPlanes, adjacent_arms, seam_planes, seam_zone_for, seam_zones_for,
+                                     two_colours)
+from ambots.errors import AmbotsError
 
 __all__ = ["ArmProgram", "build_programs", "CHUNK_BANDS", "CHUNK_BAND_CHOICES", "park_positions_mm",
            "home_positions_mm", "seam_zone_for",
@@ -125,9 +127,18 @@ def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=No
         zones = seam_zones_for(cell, arms, parts)
     else:
         zones = {pair: float(zone_mm) for pair in planes}
+    shifts = {p.arm.name: p.layer_offsets for p in parts if getattr(p, "layer_offsets", None) is not None}
+    if shifts:
+        # a stepped seam (:mod:`ambots.seam_steps`): two arms only, banded; an arm can be a
+        # layer ahead of its neighbour, so the zone grows by the seam's largest step
+        from ambots.seam_steps import largest_step
+        if len(arms) != 2:
+            raise ValueError("a stepped seam is for two arms, got %d" % len(arms))
+        step = max(largest_step(s) for s in shifts.values())
+        zones = {pair: z + step for pair, z in zones.items()}
     home = home_positions_mm(cell, arms)
     return _concurrent(arms, read, park, home, n_layers, planes, zones, JointMoves(cell, arms),
-                       CHUNK_BANDS if chunk_bands is None else chunk_bands)
+                       CHUNK_BANDS if chunk_bands is None else chunk_bands, shifts)
 
 
 def _read(gcode, path):
@@ -149,18 +160,24 @@ CHUNK_BANDS = 4
 CHUNK_BAND_CHOICES = (1, 2, 3, 4)
 
 
-def _concurrent(arms, read, park, home, n_layers, planes, zones, moves=None, chunk_bands=CHUNK_BANDS):
+def _concurrent(arms, read, park, home, n_layers, planes, zones, moves=None, chunk_bands=CHUNK_BANDS, shifts=None):
     """Banded sweeps when the adjacent arms have two colours and every arm
-    can keep clear of its seams; otherwise the scheduled timeline."""
+    can keep clear of its seams; otherwise the scheduled timeline.
+    ``shifts``: a stepped seam's {arm: (L,) mm per layer} (banded only)."""
     names = [a.name for a in arms]
     adjacent = adjacent_arms(arms, read, planes, zones)
     colour = two_colours(names, adjacent)
     if colour is not None:
         near = {a: [planes[a, b] for b in names if b in adjacent[a]] for a in names}
+        if shifts:
+            near = LayerPlanes(near, shifts)
         zone = max([zones[a, b] for a in names for b in adjacent[a]] or [0.0])
         programs = banded_programs(arms, read, park, n_layers, zone, near, colour, adjacent, home, zones, moves)
         if programs is not None:
             return programs
+    if shifts:
+        raise AmbotsError("a stepped seam needs the banded sweeps, and these arms cannot keep clear of it "
+                          "in bands")
     # no two colours, or an arm between two seams cannot stand clear of both
     # (their zones about as wide as its part): the scheduled timeline
     return timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent, bands=chunk_bands,

@@ -11,7 +11,7 @@ from ambots.coordinate.bands import _phase_of, band_stats, choose_bands
 from ambots.coordinate.emit import ArmProgram, Emitter, resolve_waits
 from ambots.coordinate.parking import APPROACH_MM, lift_height
 from ambots.coordinate.steps import END, Step, Wait, _order_runs, close, cut_segment
-from ambots.coordinate.zones import distance_to_planes
+from ambots.coordinate.zones import distance_to_planes, planes_at
 
 __all__ = ["banded_programs"]
 
@@ -128,7 +128,7 @@ def _sweep_step(em, a, arms, phases, planes, bounds, nb, layer, p, k):
     if first is not None:
         approach.travel = first.start
     elif p > 0 and not towards and em.pos is not None:
-        approach.travel = _retreat(em.pos, planes[a.name], band, bounds[a.name])
+        approach.travel = _retreat(em.pos, planes_at(planes, a.name, layer), band, bounds[a.name])
         if approach.travel is None:           # no point of this band clear of all its seams: not banded
             return False
     if p > 0 and not towards and nb:
@@ -188,16 +188,16 @@ def _phases(arms, segs_by, planes, bounds, k, colour, n_layers, lo=None, feature
     for a in arms:
         for layer in range(n_layers):
             layer_segs = segs_by.get((a.name, layer), [])
-            segs, mids, fixed, src = _cut_layer(layer_segs, planes[a.name], bounds[a.name],
-                                                None if lo is None else lo[a.name])
-            band = np.where(fixed >= 0, fixed, _band_of(mids, planes[a.name], bounds[a.name])).tolist()
+            here = planes_at(planes, a.name, layer)
+            segs, mids, fixed, src = _cut_layer(layer_segs, here, bounds[a.name], None if lo is None else lo[a.name])
+            band = np.where(fixed >= 0, fixed, _band_of(mids, here, bounds[a.name])).tolist()
             by_band = [[] for _ in range(k)]
             by_src = [[] for _ in range(k)]
             for s, b, i in zip(segs, band, src):
                 by_band[b].append(s)
                 by_src[b].append(i)
-            if len(bounds[a.name]) > 1 and planes[a.name]:
-                by_band = [_edge_links(layer_segs, pieces, idx, planes[a.name], bounds[a.name],
+            if len(bounds[a.name]) > 1 and here:
+                by_band = [_edge_links(layer_segs, pieces, idx, here, bounds[a.name],
                                         features.get(a.name))
                            for pieces, idx in zip(by_band, by_src)]
             for b in range(k):
@@ -435,7 +435,8 @@ def _banded_start(arms, names, phases, planes, adjacent, home, n_layers, k, limi
     waits = {a.name: [] for a in arms}
     if home is None:
         return parks_first, waits
-    home_d = {a.name: distance_to_planes(np.asarray(home[a.name], dtype=float)[None], planes[a.name])[0]
+    home_d = {a.name: distance_to_planes(np.asarray(home[a.name], dtype=float)[None],
+                                         planes_at(planes, a.name, 0))[0]
               for a in arms}
     for a in arms:
         for i, b in enumerate(nb[a.name]):

@@ -9,7 +9,7 @@ band i while the other prints band k-1-i (:func:`_phase_of`)."""
 import numpy as np
 
 from ambots.coordinate.steps import seg_times
-from ambots.coordinate.zones import distance_to_planes
+from ambots.coordinate.zones import distance_to_planes, planes_at
 
 __all__ = ["choose_bands", "band_stats", "PIECE_S"]
 
@@ -51,8 +51,8 @@ def band_stats(arms, segs_by, planes, n_layers):
             seg = np.repeat(np.arange(len(segs)), pieces)
             frac = (np.arange(len(seg)) - np.repeat(np.cumsum(pieces) - pieces, pieces) + 0.5) / pieces[seg]
             mid = P0[seg] + frac[:, None] * (P1 - P0)[seg]
-            d = (distance_to_planes(mid, planes[a.name]).min(axis=1) if planes[a.name]
-                 else np.full(len(seg), np.inf))
+            here = planes_at(planes, a.name, layer)
+            d = distance_to_planes(mid, here).min(axis=1) if here else np.full(len(seg), np.inf)
             joined = np.zeros(len(segs), bool)
             joined[1:] = np.all(P1[:-1] == P0[1:], axis=1)
             follows = np.ones(len(seg), bool)

@@ -8,7 +8,8 @@ import math
 
 import numpy as np
 
-__all__ = ["seam_planes", "adjacent_arms", "seam_zone_for", "seam_zones_for", "distance_to_planes", "two_colours"]
+__all__ = ["seam_planes", "LayerPlanes", "planes_at", "adjacent_arms", "seam_zone_for", "seam_zones_for",
+           "distance_to_planes", "two_colours"]
 
 
 def distance_to_planes(points, planes):
@@ -18,6 +19,30 @@ def distance_to_planes(points, planes):
     normals = np.array([n for n, _ in planes])
     offs = np.array([o for _, o in planes])
     return points @ normals.T - offs
+
+
+class LayerPlanes(dict):
+    """{arm: [(n, off)]}, each arm's planes against its neighbours, with a
+    stepped seam's offsets per layer (:mod:`ambots.seam_steps`): ``shifts``
+    {arm: (L,) mm added to each of the arm's offsets on each layer}.  As a
+    dict it gives the straight planes; :func:`planes_at` a layer's."""
+
+    def __init__(self, planes, shifts):
+        super().__init__(planes)
+        self.shifts = {a: np.asarray(s, dtype=float) for a, s in shifts.items() if s is not None}
+
+    def at(self, arm, layer):
+        s = self.shifts.get(arm)
+        if s is None or not len(s):
+            return self[arm]
+        d = float(s[min(max(int(layer), 0), len(s) - 1)])
+        return [(n, off + d) for n, off in self[arm]]
+
+
+def planes_at(planes, arm, layer):
+    """``arm``'s planes on ``layer``: ``planes[arm]``, or a
+    :class:`LayerPlanes`' planes of that layer."""
+    return planes.at(arm, layer) if isinstance(planes, LayerPlanes) else planes[arm]
 
 
 def seam_planes(parts):

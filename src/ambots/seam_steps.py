@@ -1,0 +1,237 @@
+"""A stepped seam: two arms' seam moved layer by layer.
+
+A straight seam is one vertical plane for every layer, placed so that the
+two parts take their arms equally long in all.  Where the model's layers
+change along the seam's normal (a ramp, a bracket standing on its foot), a
+layer's two halves are then far from equal: on a 200 mm ramp rising towards
+the UR10 the layers above 13 mm lie wholly on the UR10's side, and with the
+layers printed in step the Kinova has nothing to do for the last third.
+
+Here the seam keeps its normal and moves along it from layer to layer
+(:func:`balanced_offsets`): on each layer it is where the layer's
+toolpaths (the whole model's, :meth:`ambots.slicer.WholeModel.toolpaths`)
+divide in the straight seam's proportion, so each layer is shared as the
+whole model was, moving at most :data:`STEP_MM` from one layer to the next
+(the seam zone is widened by the largest step: an arm may be a layer ahead
+of its neighbour, see :func:`ambots.coordinate.banded.banded_programs`).
+The parts are the model cut slab by slab (:func:`stepped_parts`); each
+part keeps its straight plane (:attr:`ambots.partition.Part.planes`) and
+the offset added to it on each layer
+(:attr:`ambots.partition.Part.layer_offsets`).
+
+Units: mm in the bed frame."""
+import numpy as np
+
+__all__ = ["STEP_MM", "balanced_offsets", "stepped_parts", "layer_segments"]
+
+#: the most (mm) a stepped seam moves from one layer to the next; the seam
+#: zone is widened by the largest step taken
+STEP_MM = 0.5
+#: offsets are rounded to this (mm): layers whose seam moves less than that
+#: share one slab of the parts
+QUANTUM_MM = 0.1
+
+
+def layer_segments(toolpaths):
+    """Per layer of ``toolpaths`` ([:class:`ambots.slicer.LayerPaths`]),
+    the extrusions as (starts (S, 2), ends (S, 2)) mm: perimeters (closed),
+    infill, support and its contact layer."""
+    out = []
+    for lp in toolpaths:
+        paths = [p for groups in lp.islands for group in groups for p in group]
+        paths += list(lp.support or []) + list(lp.contact or [])
+        a, b = [], []
+        for p in paths:
+            pts = np.asarray(p.points, dtype=float)[:, :2]
+            if len(pts) < 2:
+                continue
+            a.append(pts[:-1])
+            b.append(pts[1:])
+            if p.closed:
+                a.append(pts[-1:])
+                b.append(pts[:1])
+        out.append((np.concatenate(a), np.concatenate(b)) if a else (np.zeros((0, 2)), np.zeros((0, 2))))
+    return out
+
+
+def _length_above(s0, s1, lengths, d):
+    """Length of the segments (projections ``s0``, ``s1`` on the normal,
+    ``lengths``) with n . p >= each of ``d`` (D,) -> (D,): a segment's
+    length counts in proportion to the share of its projection past d (one
+    across the normal: wholly on the side of its projection)."""
+    lo, hi = np.minimum(s0, s1)[None], np.maximum(s0, s1)[None]
+    d = np.asarray(d, dtype=float)[:, None]
+    span = hi - lo
+    frac = np.where(span > 1e-9, np.clip((hi - d) / np.where(span > 1e-9, span, 1.0), 0.0, 1.0),
+                    (lo >= d).astype(float))
+    return (frac * lengths[None]).sum(axis=1)
+
+
+def _where_above(s0, s1, lengths, target, lo, hi):
+    """The d in [lo, hi] with ``target`` mm of the segments at n . p >= d
+    (:func:`_length_above`, which falls as d grows), by bisection to 1e-6 mm;
+    lo or hi if the target lies beyond."""
+    for _ in range(60):
+        if hi - lo <= 1e-6:
+            break
+        mid = (lo + hi) / 2.0
+        if float(_length_above(s0, s1, lengths, [mid])[0]) > target:
+            lo = mid
+        else:
+            hi = mid
+    return (lo + hi) / 2.0
+
+
+def balanced_offsets(segments, normal, offset, step_mm=STEP_MM, quantum_mm=QUANTUM_MM, keep_mm=0.0, share=None):
+    """Per layer, the mm to add to the straight seam's ``offset`` (the plane
+    n . p = offset, ``normal`` (2,) or (3,), the first part on the side
+    n . p >= offset) so that the layer's extrusions (``segments``,
+    :func:`layer_segments`) divide as all layers' do at the straight seam,
+    by length; rounded to ``quantum_mm``, and moving at most ``step_mm``
+    from one layer to the next (the nearest such sequence: limited going up,
+    then going down).  Returns (L,) float."""
+    n = np.asarray(normal, dtype=float)[:2]
+    proj = [(a @ n, b @ n, np.linalg.norm(b - a, axis=1)) for a, b in segments]
+    total = sum(float(L.sum()) for _, _, L in proj)
+    if not total > 0:
+        return np.zeros(len(segments))
+    if share is None:
+        share = sum(float(_length_above(s0, s1, L, [offset])[0]) for s0, s1, L in proj) / total
+    want = np.zeros(len(segments))
+    for i, (s0, s1, L) in enumerate(proj):
+        if not len(L) or not L.sum() > 0:
+            want[i] = np.nan
+            continue
+        lo, hi = float(min(s0.min(), s1.min())), float(max(s0.max(), s1.max()))
+        if hi - lo < 2 * keep_mm:        # too short to share with keep_mm each side: where the straight seam puts it
+            want[i] = 0.0
+            continue
+        span = (lo + keep_mm, hi - keep_mm)
+        want[i] = float(np.clip(_where_above(s0, s1, L, share * float(L.sum()), lo, hi), *span)) - offset
+    if np.isnan(want).all():
+        return np.zeros(len(segments))
+    # layers without extrusions take their neighbour's
+    idx = np.arange(len(want))
+    ok = ~np.isnan(want)
+    want = np.interp(idx, idx[ok], want[ok])
+    want = np.round(want / quantum_mm) * quantum_mm
+    out = want.copy()
+    for i in range(1, len(out)):
+        out[i] = np.clip(out[i], out[i - 1] - step_mm, out[i - 1] + step_mm)
+    for i in range(len(out) - 2, -1, -1):
+        out[i] = np.clip(out[i], out[i + 1] - step_mm, out[i + 1] + step_mm)
+    return np.round(out / quantum_mm) * quantum_mm
+
+
+def largest_step(offsets):
+    """The most (mm) ``offsets`` move from one layer to the next."""
+    offsets = np.asarray(offsets, dtype=float)
+    return float(np.abs(np.diff(offsets)).max()) if len(offsets) > 1 else 0.0
+
+
+def stepped_parts(model, parts, offsets, z_tops, heights):
+    """The two ``parts`` (:class:`ambots.partition.Part`, a straight seam)
+    of ``model`` (manifold3d.Manifold) cut again with the first one's plane
+    moved by ``offsets`` (L,) mm on each of the slicer's layers (``z_tops``,
+    ``heights``): slab by slab (layers of equal offset share a slab; the
+    lowest reaches down and the highest up past the model).  Returns the
+    new parts, each with its :attr:`~ambots.partition.Part.layer_offsets`
+    (the second's the opposite of the first's)."""
+    import manifold3d as m3
+    from dataclasses import replace
+    a, b = parts
+    (n, off), = a.planes
+    n = [float(v) for v in n]
+    offsets = np.asarray(offsets, dtype=float)
+    bottoms = np.asarray(z_tops, dtype=float) - np.asarray(heights, dtype=float)
+    starts = [0] + [i for i in range(1, len(offsets)) if offsets[i] != offsets[i - 1]]
+    pieces = ([], [])
+    for g, i in enumerate(starts):
+        j = starts[g + 1] if g + 1 < len(starts) else len(offsets)
+        slab = model
+        if g > 0:
+            slab = slab.trim_by_plane([0.0, 0.0, 1.0], float(bottoms[i]))
+        if j < len(offsets):
+            slab = slab.trim_by_plane([0.0, 0.0, -1.0], -float(bottoms[j]))
+        o = float(off + offsets[i])
+        pieces[0].append(slab.trim_by_plane(n, o))
+        pieces[1].append(slab.trim_by_plane([-v for v in n], -o))
+    cut = [m3.Manifold.batch_boolean(p, m3.OpType.Add) if len(p) > 1 else p[0] for p in pieces]
+    return [replace(a, manifold=cut[0], layer_offsets=offsets.copy()),
+            replace(b, manifold=cut[1], layer_offsets=-offsets)]
+
+
+def _layer_lengths(proj, normal_offsets):
+    """Each layer's extrusion length on the first part's side of its seam
+    (n . p >= offset + its offset), (L,)."""
+    return np.array([float(_length_above(s0, s1, L, [o])[0]) if len(L) else 0.0
+                     for (s0, s1, L), o in zip(proj, normal_offsets)])
+
+
+def timed_offsets(segments, normal, offset, offsets, busy, step_mm=STEP_MM, quantum_mm=QUANTUM_MM, keep_mm=0.0):
+    """The per-layer ``offsets`` (L,) of a plan moved so that each layer's
+    two halves take their arms equally long: ``busy`` (2, L) s, each arm's
+    time on each layer of that plan (the one timing law), the first arm's
+    part on the side n . p >= offset + offsets.  A layer's work is moved
+    across the seam at each arm's own time per mm of toolpath there (the
+    layer's mean of both where one arm has none), by length along the
+    normal (:func:`balanced_offsets`); a layer narrower than ``2 keep_mm``
+    along the normal is not moved, nor its seam brought within ``keep_mm``
+    of its ends.  Then rounded and limited in step as there."""
+    n = np.asarray(normal, dtype=float)[:2]
+    proj = [(a @ n, b @ n, np.linalg.norm(b - a, axis=1)) for a, b in segments]
+    offsets = np.asarray(offsets, dtype=float)
+    busy = np.asarray(busy, dtype=float)
+    la = _layer_lengths(proj, offset + offsets)
+    total = np.array([float(L.sum()) for _, _, L in proj])
+    lb = total - la
+    want = offsets.copy()
+    for i, (s0, s1, L) in enumerate(proj):
+        if i >= busy.shape[1] or not total[i] > 0:
+            continue
+        lo, hi = float(min(s0.min(), s1.min())), float(max(s0.max(), s1.max()))
+        if hi - lo < 2 * keep_mm:
+            continue
+        ta, tb = busy[0, i], busy[1, i]
+        rate = (ta + tb) / total[i]
+        ra = ta / la[i] if la[i] > 1e-6 and ta > 0 else rate
+        rb = tb / lb[i] if lb[i] > 1e-6 and tb > 0 else rate
+        target = float(np.clip(la[i] - (ta - tb) / (ra + rb), 0.0, total[i]))
+        want[i] = _where_above(s0, s1, L, target, lo + keep_mm, hi - keep_mm) - offset
+    want = np.round(want / quantum_mm) * quantum_mm
+    out = want.copy()
+    for i in range(1, len(out)):
+        out[i] = np.clip(out[i], out[i - 1] - step_mm, out[i - 1] + step_mm)
+    for i in range(len(out) - 2, -1, -1):
+        out[i] = np.clip(out[i], out[i + 1] - step_mm, out[i + 1] + step_mm)
+    return np.round(out / quantum_mm) * quantum_mm
+
+
+#: a stepped seam is tried only where it moves at least this far (mm) on some layer
+STEPPED_MIN_MM = 1.0
+
+
+def plan_offsets(parts, sliced, layer_busy, toolpaths, keep_mm):
+    """The per-layer offsets (:func:`timed_offsets`) for a plan of two
+    ``parts`` with a straight seam: ``sliced`` {arm name: its G-code, the
+    whole model's toolpaths clipped}, ``layer_busy`` {arm name: (L',) s it
+    moves on each layer of its program, :func:`ambots.estimate.makespan`},
+    ``toolpaths`` the whole model's (:meth:`ambots.slicer.WholeModel.toolpaths`).
+    A program's layer j is its G-code's j-th layer, matched to the whole
+    model's by its ``;Z:`` (a part may lack layers).  None when the seam
+    would move less than :data:`STEPPED_MIN_MM` on every layer."""
+    import re
+    if len(parts) != 2 or any(len(p.planes) != 1 for p in parts):
+        return None
+    index = {round(float(lp.z), 3): i for i, lp in enumerate(toolpaths)}
+    busy = np.zeros((2, len(toolpaths)))
+    for row, p in enumerate(parts):
+        per = np.asarray(layer_busy[p.arm.name], dtype=float)
+        zs = re.findall(r"^;Z:(-?[0-9.]+)$", str(sliced[p.arm.name]), flags=re.M)
+        for j, z in enumerate(zs[:len(per)]):
+            i = index.get(round(float(z), 3))
+            if i is not None:
+                busy[row, i] += per[j]
+    (n, off), = parts[0].planes
+    offsets = timed_offsets(layer_segments(toolpaths), n, off, np.zeros(len(toolpaths)), busy, keep_mm=keep_mm)
+    return offsets if np.abs(offsets).max() >= STEPPED_MIN_MM else None
