@@ -66,6 +66,13 @@ def models():
                              [100, 20, 20]],
                             [[0, 2, 1], [0, 3, 2], [1, 2, 5], [1, 5, 4], [0, 1, 4], [3, 5, 2], [0, 4, 5], [0, 5, 3]])
     wedge.fix_normals()
+    # a block leaning 45 deg along the arms' line: its layers move 40 mm from the bed to its top
+    x0, x1 = -100.0, 60.0
+    lean = trimesh.Trimesh([[x0, -20, 0], [x1, -20, 0], [x1, 20, 0], [x0, 20, 0], [x0 + 40, -20, 40],
+                            [x1 + 40, -20, 40], [x1 + 40, 20, 40], [x0 + 40, 20, 40]],
+                           [[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5],
+                            [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]])
+    lean.fix_normals()
     plate = hex_prism(300.0, 6.0)
     plate.apply_scale((276.0 / 300.0, 174.0 / (300.0 * math.sqrt(3) / 2), 1.0))
     out = {
@@ -77,6 +84,7 @@ def models():
         "L (200 x 150 mm)": _lifted(ell),
         "cross (180 x 180 mm)": _lifted(cross),
         "wedge (200 x 40 x 0-20 mm)": _lifted(wedge),
+        "leaning block (160 x 40 x 40 mm, 45 deg)": _lifted(lean),
         "hex plate (276 x 174 mm)": _lifted(plate),
         "plate 300 x 300 x 4": _lifted(trimesh.creation.box((300.0, 300.0, 4.0))),
         "box 300 x 300 x 20": _lifted(trimesh.creation.box((300.0, 300.0, 20.0))),
@@ -159,9 +167,12 @@ def _row(label, cell, path, simulate_runs):
     job = run_job(path, cell)
     wall = time.perf_counter() - t0
     chosen, single = job.chosen, _best_single(job)
-    # all the arms with the seams straight (the planner may choose them turned: ambots.job.SEAM_TURNS_DEG)
-    together = next((c for c in job.candidates if len(c.arms) == len(cell.arms) and not c.seam_turn_deg), None)
+    # all the arms with the seams straight (the planner may choose them turned, ambots.job.SEAM_TURNS_DEG,
+    # or stepped per layer, ambots.seam_steps)
+    together = next((c for c in job.candidates if len(c.arms) == len(cell.arms) and not c.seam_turn_deg
+                     and c.seam_steps_mm is None), None)
     how = "+".join(chosen.arms) + (" seam %+g deg" % chosen.seam_turn_deg if chosen.seam_turn_deg else "")
+    how += " seam stepped %+.0f..%+.0f mm" % tuple(chosen.seam_steps_mm) if chosen.seam_steps_mm else ""
     ratio = lambda c: (c.makespan_s / single.makespan_s) if c is not None and c.makespan_s and single else math.nan
     line = ("%-32s %-10s best single %s %8s s | %d arms %8s s = %.3f | chosen %-26s %.3f (plan %.0f s wall)"
             % (label, cell.name, single.arms[0] if single else "-", "%.0f" % single.makespan_s if single else "-",
