@@ -8,10 +8,11 @@ the UR10 the layers above 13 mm lie wholly on the UR10's side, and with the
 layers printed in step the Kinova has nothing to do for the last third.
 
 Here the seam keeps its normal and moves along it from layer to layer
-(:func:`balanced_offsets`): on each layer it is where the layer's
-toolpaths (the whole model's, :meth:`ambots.slicer.WholeModel.toolpaths`)
-divide in the straight seam's proportion, so each layer is shared as the
-whole model was, moving at most :data:`STEP_MM` from one layer to the next
+(:func:`timed_offsets`): on each layer, the work of the layer's toolpaths
+(the whole model's, :meth:`ambots.slicer.WholeModel.toolpaths`) is moved
+across it at each arm's time per mm there (from the straight plan, the one
+timing law) until the layer's halves take their arms equally long,
+moving at most :data:`STEP_MM` from one layer to the next
 (the seam zone is widened by the largest step: an arm may be a layer ahead
 of its neighbour, see :func:`ambots.coordinate.banded.banded_programs`).
 The parts are the model cut slab by slab (:func:`stepped_parts`); each
@@ -22,7 +23,7 @@ the offset added to it on each layer
 Units: mm in the bed frame."""
 import numpy as np
 
-__all__ = ["STEP_MM", "balanced_offsets", "stepped_parts", "layer_segments"]
+__all__ = ["STEP_MM", "timed_offsets", "plan_offsets", "stepped_parts", "layer_segments", "largest_step"]
 
 #: the most (mm) a stepped seam moves from one layer to the next; the seam
 #: zone is widened by the largest step taken
@@ -82,40 +83,10 @@ def _where_above(s0, s1, lengths, target, lo, hi):
     return (lo + hi) / 2.0
 
 
-def balanced_offsets(segments, normal, offset, step_mm=STEP_MM, quantum_mm=QUANTUM_MM, keep_mm=0.0, share=None):
-    """Per layer, the mm to add to the straight seam's ``offset`` (the plane
-    n . p = offset, ``normal`` (2,) or (3,), the first part on the side
-    n . p >= offset) so that the layer's extrusions (``segments``,
-    :func:`layer_segments`) divide as all layers' do at the straight seam,
-    by length; rounded to ``quantum_mm``, and moving at most ``step_mm``
-    from one layer to the next (the nearest such sequence: limited going up,
-    then going down).  Returns (L,) float."""
-    n = np.asarray(normal, dtype=float)[:2]
-    proj = [(a @ n, b @ n, np.linalg.norm(b - a, axis=1)) for a, b in segments]
-    total = sum(float(L.sum()) for _, _, L in proj)
-    if not total > 0:
-        return np.zeros(len(segments))
-    if share is None:
-        share = sum(float(_length_above(s0, s1, L, [offset])[0]) for s0, s1, L in proj) / total
-    want = np.zeros(len(segments))
-    for i, (s0, s1, L) in enumerate(proj):
-        if not len(L) or not L.sum() > 0:
-            want[i] = np.nan
-            continue
-        lo, hi = float(min(s0.min(), s1.min())), float(max(s0.max(), s1.max()))
-        if hi - lo < 2 * keep_mm:        # too short to share with keep_mm each side: where the straight seam puts it
-            want[i] = 0.0
-            continue
-        span = (lo + keep_mm, hi - keep_mm)
-        want[i] = float(np.clip(_where_above(s0, s1, L, share * float(L.sum()), lo, hi), *span)) - offset
-    if np.isnan(want).all():
-        return np.zeros(len(segments))
-    # layers without extrusions take their neighbour's
-    idx = np.arange(len(want))
-    ok = ~np.isnan(want)
-    want = np.interp(idx, idx[ok], want[ok])
-    want = np.round(want / quantum_mm) * quantum_mm
-    out = want.copy()
+def _limited(want, step_mm, quantum_mm):
+    """``want`` (L,) rounded to ``quantum_mm`` and moving at most ``step_mm``
+    from one layer to the next: limited going up, then going down."""
+    out = np.round(np.asarray(want, dtype=float) / quantum_mm) * quantum_mm
     for i in range(1, len(out)):
         out[i] = np.clip(out[i], out[i - 1] - step_mm, out[i - 1] + step_mm)
     for i in range(len(out) - 2, -1, -1):
@@ -175,9 +146,11 @@ def timed_offsets(segments, normal, offset, offsets, busy, step_mm=STEP_MM, quan
     part on the side n . p >= offset + offsets.  A layer's work is moved
     across the seam at each arm's own time per mm of toolpath there (the
     layer's mean of both where one arm has none), by length along the
-    normal (:func:`balanced_offsets`); a layer narrower than ``2 keep_mm``
-    along the normal is not moved, nor its seam brought within ``keep_mm``
-    of its ends.  Then rounded and limited in step as there."""
+    normal; a layer narrower than ``2 keep_mm`` along the normal is not
+    moved, nor its seam brought within ``keep_mm`` of its ends.  Then
+    rounded to ``quantum_mm`` and moving at most ``step_mm`` from one layer
+    to the next (the nearest such sequence: limited going up, then going
+    down).  Returns (L,) float."""
     n = np.asarray(normal, dtype=float)[:2]
     proj = [(a @ n, b @ n, np.linalg.norm(b - a, axis=1)) for a, b in segments]
     offsets = np.asarray(offsets, dtype=float)
@@ -198,13 +171,7 @@ def timed_offsets(segments, normal, offset, offsets, busy, step_mm=STEP_MM, quan
         rb = tb / lb[i] if lb[i] > 1e-6 and tb > 0 else rate
         target = float(np.clip(la[i] - (ta - tb) / (ra + rb), 0.0, total[i]))
         want[i] = _where_above(s0, s1, L, target, lo + keep_mm, hi - keep_mm) - offset
-    want = np.round(want / quantum_mm) * quantum_mm
-    out = want.copy()
-    for i in range(1, len(out)):
-        out[i] = np.clip(out[i], out[i - 1] - step_mm, out[i - 1] + step_mm)
-    for i in range(len(out) - 2, -1, -1):
-        out[i] = np.clip(out[i], out[i + 1] - step_mm, out[i + 1] + step_mm)
-    return np.round(out / quantum_mm) * quantum_mm
+    return _limited(want, step_mm, quantum_mm)
 
 
 #: a stepped seam is tried only where it moves at least this far (mm) on some layer

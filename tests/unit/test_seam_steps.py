@@ -8,8 +8,7 @@ import pytest
 
 from ambots.config import default_cell_path, load_cell
 from ambots.partition import partition
-from ambots.seam_steps import (STEP_MM, balanced_offsets, largest_step, layer_segments, plan_offsets,
-                               stepped_parts, timed_offsets)
+from ambots.seam_steps import STEP_MM, largest_step, layer_segments, plan_offsets, stepped_parts, timed_offsets
 from ambots.slicer import Path, SliceSettings, WholeModel, layer_heights
 
 
@@ -23,33 +22,49 @@ def lines_layers(spans):
     return [(np.array([[a, 0.0]]), np.array([[b, 0.0]])) for a, b in spans]
 
 
-def test_each_layer_is_cut_where_its_length_divides_as_asked():
-    """A line from a to b along the normal, cut so that ``share`` of it is
-    on the first part's side (x >= seam): the seam at b - share (b - a)."""
+def by_length(spans, seam=0.0, rate_a=1.0, rate_b=1.0):
+    """Busy times (2, L) of lines ``spans`` cut at x = ``seam``: the first
+    arm (x >= seam) at ``rate_a`` s a mm, the second at ``rate_b``."""
+    return np.array([[rate_a * max(b - max(a, seam), 0.0) for a, b in spans],
+                     [rate_b * max(min(b, seam) - a, 0.0) for a, b in spans]])
+
+
+def test_each_layer_is_cut_where_its_halves_take_equally_long():
+    """Lines from a to b along the normal; the first arm takes 3 s a mm,
+    the second 1 s: equal times give the first a quarter of each line, so
+    the seam goes to b - (b - a) / 4, whatever the seam they were timed at."""
     spans = [(-100.0, 100.0), (-90.0, 100.0), (-80.0, 100.0), (-70.0, 100.0)]
-    got = balanced_offsets(lines_layers(spans), (1.0, 0.0), 0.0, step_mm=50.0, quantum_mm=1e-3, share=0.25)
-    want = [b - 0.25 * (b - a) for a, b in spans]
+    want = [b - (b - a) / 4.0 for a, b in spans]
+    for seam in (0.0, -30.0, 60.0):
+        got = timed_offsets(lines_layers(spans), (1.0, 0.0), seam, np.zeros(4), by_length(spans, seam, 3.0, 1.0),
+                            step_mm=50.0, quantum_mm=1e-3)
+        assert got + seam == pytest.approx(want, abs=2e-3)
+    # timed at offsets already moved: the same answer
+    moved = np.array([10.0, -5.0, 0.0, 20.0])
+    got = timed_offsets(lines_layers(spans), (1.0, 0.0), 0.0, moved,
+                        np.column_stack([by_length([s], m, 3.0, 1.0)[:, 0] for s, m in zip(spans, moved)]),
+                        step_mm=50.0, quantum_mm=1e-3)
     assert got == pytest.approx(want, abs=2e-3)
-    # no share given: the straight seam's own over all layers, 4 x 100 mm of 740 mm at x >= 0
-    got = balanced_offsets(lines_layers(spans), (1.0, 0.0), 0.0, step_mm=50.0, quantum_mm=1e-3)
-    assert got == pytest.approx([b - 400.0 / 740.0 * (b - a) for a, b in spans], abs=2e-3)
 
 
 def test_the_seam_moves_at_most_a_step_a_layer_and_short_layers_stay():
-    """Layers whose middles jump 60 mm: the offsets go there a step a
-    layer; a layer narrower than twice ``keep_mm`` keeps the straight seam."""
+    """Layers whose middles jump 60 mm (the arms alike): the offsets go
+    there a step a layer; a layer narrower than twice ``keep_mm`` keeps
+    the seam it had."""
     spans = [(-100.0, 100.0)] * 3 + [(-40.0, 160.0)] * 150
     for step in (STEP_MM, 2.0):
-        got = balanced_offsets(lines_layers(spans), (1.0, 0.0), 0.0, share=0.5, step_mm=step)
+        got = timed_offsets(lines_layers(spans), (1.0, 0.0), 0.0, np.zeros(len(spans)), by_length(spans),
+                            step_mm=step)
         assert largest_step(got) <= step + 1e-9
         assert got[0] == 0.0 and got[-1] == pytest.approx(60.0)
         assert np.all(np.diff(got) >= -1e-9)                 # straight there, no overshoot
         # from the layer where the layers move on, a step a layer
         assert got[2] == 0.0 and got[3] == pytest.approx(step) and got[4] == pytest.approx(2 * step)
     short = [(-100.0, 100.0), (50.0, 90.0), (-100.0, 100.0)]
-    kept = balanced_offsets(lines_layers(short), (1.0, 0.0), 0.0, share=0.1, step_mm=1e3, keep_mm=25.0)
-    free = balanced_offsets(lines_layers(short), (1.0, 0.0), 0.0, share=0.1, step_mm=1e3)
-    assert kept[1] == 0.0 and free[1] == pytest.approx(86.0, abs=0.1)
+    busy = by_length(short, 0.0, 1.0, 1.0)                  # the 40 mm layer all the first arm's
+    kept = timed_offsets(lines_layers(short), (1.0, 0.0), 0.0, np.zeros(3), busy, step_mm=1e3, keep_mm=25.0)
+    free = timed_offsets(lines_layers(short), (1.0, 0.0), 0.0, np.zeros(3), busy, step_mm=1e3)
+    assert kept[1] == 0.0 and free[1] == pytest.approx(70.0, abs=0.1)
 
 
 def test_a_layer_is_shared_by_the_arms_times():
