@@ -489,7 +489,10 @@ def _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mo
     zone = None
     if zone_floor is not None:
         from ambots.coordinate import seam_zones_for
-        zone = max([zone_floor] + list(seam_zones_for(cell, arms, parts).values()))
+        from ambots.seam_steps import extremes
+        # a stepped seam: the zone of its two extremes (every layer's seam lies between them)
+        zone = max([zone_floor] + [z for ps in ([parts] if offsets is None else [parts] + extremes(parts))
+                                   for z in seam_zones_for(cell, arms, ps).values()])
     programs = coordinate(sliced, parts, cell, mode, idle=idle, zone_mm=zone)
     return _fastest_schedule(_plan(parts, sliced, programs, [a.name for a in arms], mode, cell, turn_deg, offsets),
                              cell, mode, idle)

@@ -23,7 +23,8 @@ the offset added to it on each layer
 Units: mm in the bed frame."""
 import numpy as np
 
-__all__ = ["STEP_MM", "timed_offsets", "plan_offsets", "stepped_parts", "layer_segments", "largest_step"]
+__all__ = ["STEP_MM", "timed_offsets", "plan_offsets", "stepped_parts", "layer_segments", "largest_step",
+           "extremes"]
 
 #: the most (mm) a stepped seam moves from one layer to the next; the seam
 #: zone is widened by the largest step taken
@@ -92,6 +93,21 @@ def _limited(want, step_mm, quantum_mm):
     for i in range(len(out) - 2, -1, -1):
         out[i] = np.clip(out[i], out[i + 1] - step_mm, out[i + 1] + step_mm)
     return np.round(out / quantum_mm) * quantum_mm
+
+
+def extremes(parts):
+    """Two stepped ``parts`` (:func:`stepped_parts`) as two pairs of parts
+    with straight seams, at the least and at the most the seam moves: the
+    seam zone from the sampled poses is taken at both
+    (:func:`ambots.coordinate.seam_zones_for`), the zone of every layer's
+    seam between them."""
+    from dataclasses import replace
+    a, b = parts
+    out = []
+    for d in (float(np.min(a.layer_offsets)), float(np.max(a.layer_offsets))):
+        out.append([replace(a, planes=[(n, o + d) for n, o in a.planes], layer_offsets=None),
+                    replace(b, planes=[(n, o - d) for n, o in b.planes], layer_offsets=None)])
+    return out
 
 
 def largest_step(offsets):

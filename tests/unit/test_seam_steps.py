@@ -122,6 +122,22 @@ def test_stepped_parts_tile_the_model_and_each_layer_is_cut_at_its_own_seam(cell
     assert shared >= 10
 
 
+def test_the_zone_is_sampled_at_the_seams_two_extremes(cell):
+    """extremes(): the stepped parts as straight pairs at the least and the
+    most offset, each pair's two planes the same plane seen from both sides."""
+    from ambots.seam_steps import extremes
+    model = ramp_manifold()
+    parts = partition(model, cell)
+    z, h = layer_heights(float(model.bounding_box()[5]), SliceSettings())
+    offsets = np.round(np.linspace(-10.0, 14.0, len(z)), 1)
+    (n, off), = parts[0].planes
+    for pair, d in zip(extremes(stepped_parts(model, parts, offsets, z, h)), (-10.0, 14.0)):
+        (na, oa), = pair[0].planes
+        (nb, ob), = pair[1].planes
+        assert oa == pytest.approx(off + d) and ob == pytest.approx(-oa) and np.allclose(nb, -na)
+        assert pair[0].layer_offsets is None and pair[1].layer_offsets is None
+
+
 def test_the_clipped_toolpaths_follow_each_layers_seam_and_lose_nothing(cell):
     """The whole model's toolpaths clipped to the two stepped prisms: every
     extrusion of a part on its side of its layer's seam, and the two parts'
