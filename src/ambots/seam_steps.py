@@ -2,7 +2,7 @@
 
 A straight seam is one vertical plane for every layer, placed so that the
 two parts take their arms equally long in all.  Where the model's layers
-change along the seam's normal (a ramp, a bracket standing on its foot), a
+change along the seam's normal (a ramp, a block leaning towards one arm), a
 layer's two halves are then far from equal: on a 200 mm ramp rising towards
 the UR10 the layers above 13 mm lie wholly on the UR10's side, and with the
 layers printed in step the Kinova has nothing to do for the last third.
@@ -12,9 +12,13 @@ Here the seam keeps its normal and moves along it from layer to layer
 (the whole model's, :meth:`ambots.slicer.WholeModel.toolpaths`) is moved
 across it at each arm's time per mm there (from the straight plan, the one
 timing law) until the layer's halves take their arms equally long,
-moving at most :data:`STEP_MM` from one layer to the next
-(the seam zone is widened by the largest step: an arm may be a layer ahead
-of its neighbour, see :func:`ambots.coordinate.banded.banded_programs`).
+moving at most :data:`STEP_MM` from one layer to the next (the seam zone
+is widened by the largest step: at a layer change an arm may be a phase
+ahead of its neighbour, see :func:`ambots.coordinate.banded.banded_programs`),
+and a layer narrower than the zone about its seam is not moved (it is
+printed in turns whoever has it).  The job makes this plan beside the
+straight one's other variants and keeps it when faster
+(:func:`ambots.job._seam_plans`).
 The parts are the model cut slab by slab (:func:`stepped_parts`); each
 part keeps its straight plane (:attr:`ambots.partition.Part.planes`) and
 the offset added to it on each layer
