@@ -44,6 +44,15 @@ def debug_param():
     return str(rospy.get_param("~debug", False)).strip().lower() in ("true", "1", "yes", "on")
 
 
+def going_down():
+    """True once the node has begun shutting down.  rospy closes every topic
+    in a pre-shutdown hook, before ``rospy.is_shutdown()`` turns true, so a
+    publish in that window raises "publish() to a closed topic" while
+    ``is_shutdown()`` is still False: this asks for both states."""
+    import rospy
+    return rospy.is_shutdown() or rospy.core.is_shutdown_requested()
+
+
 class WallTimer:
     """Calls ``callback()`` every ``period`` wall seconds in a daemon thread
     until ROS shuts down or :meth:`shutdown`.  For retransmissions and other
@@ -63,7 +72,7 @@ class WallTimer:
             try:
                 self._callback()
             except rospy.ROSException:
-                if rospy.is_shutdown():          # a topic closed under us: going down
+                if going_down():                 # a topic closed under us: going down
                     return
                 raise
 

@@ -12,6 +12,7 @@ from std_msgs.msg import String
 
 from ambots import topics
 from ambots.clock import ArmReady, HubState
+from ambots.ros import going_down
 
 
 class ClockNode:
@@ -57,7 +58,7 @@ class ClockNode:
                 try:
                     self._publish(t)
                 except rospy.ROSException:
-                    if rospy.is_shutdown():      # the topic closed under us: going down
+                    if going_down():             # the topic closed under us: going down
                         return
                     raise
             if late is not None:

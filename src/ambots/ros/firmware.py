@@ -92,7 +92,7 @@ from ambots.motion import MotionPlanner
 from ambots.protocol import (HUB, Ack, ArmState, ClearChunk, LoadChunk, Pause, SendPosition, Start, Status, Stop,
                              decode, encode)
 from ambots.reliable import Receiver, Sender, Verdict, seq_seed
-from ambots.ros import ASeriesLog, debug_param
+from ambots.ros import ASeriesLog, debug_param, going_down
 from ambots.ros.driver import DRIVERS, TrajectoryDriver
 from ambots.ros.markers import ArrayMarker, ArrayMarkers
 from ambots.runner import ArmRunner, Bead, RunStats
@@ -641,8 +641,8 @@ class FirmwareNode:
                     last_state = state
                 self._publish_ready()
             except rospy.ROSException as exc:
-                # a topic closed under us: the node is going down (is_shutdown may follow a little later)
-                if rospy.is_shutdown() or "closed topic" in str(exc):
+                # a topic closed under us: the node is going down
+                if going_down() or "closed topic" in str(exc):
                     break
                 raise
             # spare time until the next tick: plan the next moves ahead (one

@@ -12,7 +12,7 @@ from std_msgs.msg import String
 
 from ambots import topics
 from ambots.frontend import ReliableLink
-from ambots.ros import ASeriesLog, WallTimer
+from ambots.ros import ASeriesLog, WallTimer, going_down
 
 
 class RosLink(ReliableLink):
@@ -40,7 +40,7 @@ class RosLink(ReliableLink):
             self._pub.publish(String(text))
         except rospy.ROSException:
             # the topic closed under a subscriber's callback (close() or the node going down)
-            if self._closed or rospy.is_shutdown():
+            if self._closed or going_down():
                 return
             raise
 
