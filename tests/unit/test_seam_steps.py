@@ -1,6 +1,6 @@
 """A stepped seam (ambots.seam_steps): per-layer offsets worked out by hand
-on layers of known extent, the parts cut slab by slab checked section by
-section, the clipped toolpaths checked against the per-layer planes, and
+on layers of known extent, the parts cut by the stepped prism checked
+section by section, the clipped toolpaths checked against the per-layer planes, and
 the programs (bands about each layer's seam) checked move by move."""
 import manifold3d as m3
 import numpy as np
@@ -120,6 +120,31 @@ def test_stepped_parts_tile_the_model_and_each_layer_is_cut_at_its_own_seam(cell
             assert max(near) <= 1e-6, i
             shared += 1
     assert shared >= 10
+
+
+def test_a_seam_at_an_angle_stepped_on_every_layer_cuts_each_section_at_its_own_offset():
+    # a seam plane turned 40 deg from x, its offset different on every layer (the prism's
+    # staircase has a step per layer), on a box 60 x 40 x 6 mm: each layer's section
+    # lies on its side of that layer's line, and the two parts tile the box
+    from ambots.partition import Part
+    model = m3.Manifold.cube([60.0, 40.0, 6.0]).translate([-30.0, -20.0, 0.0])
+    n = np.array([np.cos(0.7), np.sin(0.7), 0.0])
+    z, h = layer_heights(6.0, SliceSettings())
+    offsets = np.round(np.random.default_rng(3).uniform(-8.0, 8.0, len(z)), 1)
+    a, b = stepped_parts(model, [Part(None, model, [(n, 1.0)]), Part(None, model, [(-n, -1.0)])], offsets, z, h)
+    assert a.volume + b.volume == pytest.approx(model.volume(), rel=1e-9)
+    for i in range(len(z)):
+        mid = float(z[i] - h[i] / 2)
+        sides = []
+        for part, sign in ((a, 1.0), (b, -1.0)):
+            pts = np.concatenate([np.asarray(p) for p in part.manifold.slice(mid).to_polygons()])
+            d = sign * (pts @ n[:2] - (1.0 + offsets[i]))
+            sides.append(d.min())
+        # each part's section reaches that layer's line and no further
+        assert min(sides) >= -1e-6 and max(sides) <= 1e-6, (i, sides)
+    with pytest.raises(ValueError, match="upright"):
+        stepped_parts(model, [Part(None, model, [(np.array([0.0, 0.6, 0.8]), 0.0)]),
+                              Part(None, model, [(np.array([0.0, -0.6, -0.8]), 0.0)])], offsets, z, h)
 
 
 def test_the_zone_is_sampled_at_the_seams_two_extremes(cell):
