@@ -83,6 +83,24 @@ def test_a_layer_is_shared_by_the_arms_times():
     assert got == pytest.approx([-100.0, -100.0], abs=2e-3)
 
 
+def test_the_seam_does_not_creep_across_a_gap_between_islands():
+    """Two towers, 20 mm each, 200 mm apart (x in [-110, -90] and [90, 110]),
+    the first arm's at 3 s a mm, the second's at 1 s: the balance asks for
+    some of the first tower, but the seam keeps 25 mm inside the layer's
+    ends, and any seam it may take splits the same work, so it stays (it
+    used to creep towards the first tower a step a layer, 78.6 mm over 150
+    layers, moving no work); where a cut can move work (one line across),
+    it still moves."""
+    towers = [(np.array([[-110.0, 0.0], [90.0, 0.0]]), np.array([[-90.0, 0.0], [110.0, 0.0]]))] * 150
+    busy = np.array([[3.0 * 20.0] * 150, [1.0 * 20.0] * 150])
+    got = timed_offsets(towers, (1.0, 0.0), 0.0, np.zeros(150), busy, keep_mm=25.0)
+    assert np.all(got == 0.0)
+    line = lines_layers([(-110.0, 110.0)] * 150)
+    moved = timed_offsets(line, (1.0, 0.0), 0.0, np.zeros(150), by_length([(-110.0, 110.0)] * 150, 0.0, 3.0, 1.0),
+                          keep_mm=25.0)
+    assert moved[-1] == pytest.approx(55.0) and largest_step(moved) <= STEP_MM + 1e-9
+
+
 def ramp_manifold():
     """120 x 30 mm, rising from 2 to 8 mm along +x (the top layers only at one end)."""
     box = m3.Manifold.cube([120.0, 30.0, 8.0]).translate([-60.0, -15.0, 0.0])
