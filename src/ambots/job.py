@@ -78,6 +78,8 @@ class Candidate:
     #: a stepped seam (:mod:`ambots.seam_steps`): per layer, mm the seam moves
     #: along the first arm's plane normal from the straight seam (None: straight)
     seam_offsets: object = field(default=None, repr=False)
+    #: {arm name: pace} its parts were split with (:func:`split`), None: all alike
+    pace: dict = field(default=None, repr=False)
 
     @property
     def seam_steps_mm(self):
@@ -456,10 +458,11 @@ def _timed(programs, cell):
         for n, a in est["arms"].items()}
 
 
-def _plan(parts, sliced, programs, arms, how, cell, turn_deg=0.0, offsets=None):
-    """A plan's (parts, sliced, programs, Candidate), timed."""
+def _plan(parts, sliced, programs, arms, how, cell, turn_deg=0.0, offsets=None, pace=None):
+    """A plan's (parts, sliced, programs, Candidate), timed; ``turn_deg``,
+    ``offsets``, ``pace``: how its parts were split (:func:`split`)."""
     t, why, events, timeline = _timed(programs, cell)
-    return parts, sliced, programs, Candidate(arms, how, t, why, programs, events, timeline, turn_deg, offsets)
+    return parts, sliced, programs, Candidate(arms, how, t, why, programs, events, timeline, turn_deg, offsets, pace)
 
 
 #: a plan of several arms that is faster than each arm alone is split again
@@ -494,7 +497,8 @@ def _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mo
         zone = max([zone_floor] + [z for ps in ([parts] if offsets is None else [parts] + extremes(parts))
                                    for z in seam_zones_for(cell, arms, ps).values()])
     programs = coordinate(sliced, parts, cell, mode, idle=idle, zone_mm=zone)
-    return _fastest_schedule(_plan(parts, sliced, programs, [a.name for a in arms], mode, cell, turn_deg, offsets),
+    return _fastest_schedule(_plan(parts, sliced, programs, [a.name for a in arms], mode, cell, turn_deg, offsets,
+                                   pace),
                              cell, mode, idle)
 
 
@@ -518,14 +522,14 @@ SEAM_TURNS_DEG = (30.0, -30.0)
 VARIANT_SHARE = 0.002
 
 
-def _seam_plans(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle, straight, straight_pace):
+def _seam_plans(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle, straight):
     """The plans of two ``arms`` together with the seam turned by each of
     :data:`SEAM_TURNS_DEG` and, where the layers' work lies unevenly about
     the straight seam, stepped per layer (:mod:`ambots.seam_steps`, from the
     ``straight`` plan's time on each layer: :func:`_stepped_offsets`);
-    ``pace``: each arm's, from the ``straight`` plan, or None (the stepped
-    seam's parts are the straight plan's: ``straight_pace``, the pace that
-    plan was split with, or None).  Made side by
+    ``pace``: each arm's, from the ``straight`` plan, or None, for the
+    turned seams (the stepped seam's parts are the straight plan's, split
+    with its own pace).  Made side by
     side (:func:`ambots.parallel.fork_map`): [(None, sliced, programs,
     Candidate)], without parts (a manifold cannot be pickled: the chosen
     one's are cut again, :func:`split`), and without programs for one no
@@ -546,7 +550,7 @@ def _seam_plans(job, cell, arms, seam, settings, reach, pace, slicer, whole, mod
     specs = [(deg, None, pace) for deg in SEAM_TURNS_DEG]
     offsets = _stepped_offsets(straight, whole, seam, floor)
     if offsets is not None:
-        specs.append((0.0, offsets, straight_pace))
+        specs.append((0.0, offsets, straight[3].pace))
 
     def variant(spec):
         deg, steps, rates = spec
@@ -605,7 +609,8 @@ def _fastest_schedule(plan, cell, mode, idle):
 
     def build(b):                        # (programs, Candidate): no parts, which cannot be pickled
         return _plan(parts, sliced, coordinate(read, parts, cell, mode, idle=idle, chunk_bands=b),
-                     candidate.arms, candidate.how, cell, candidate.seam_turn_deg)[2:]
+                     candidate.arms, candidate.how, cell, candidate.seam_turn_deg, candidate.seam_offsets,
+                     candidate.pace)[2:]
 
     best = plan
     for programs, other in fork_map(build, [b for b in CHUNK_BAND_CHOICES if b not in bands]):
@@ -759,7 +764,6 @@ def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose
     plans = []
     reach = {}                           # the reach checks of this mesh, shared by the plans
     pace = None                          # the arms' pace of a plan split again (:data:`REBALANCE_SHARE`)
-    plan_pace = None                     # ... if that plan was kept
     whole = None
     if slicer == "builtin":              # the whole model sliced once for the parts and the arms alone
         from ambots.slicer import SliceSettings, WholeModel
@@ -794,11 +798,10 @@ def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose
             pace = {n: round(b / mean, PACE_DIGITS) for n, b in busy.items()}
             again = _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle)
             if again[3].makespan_s is not None and again[3].makespan_s < plan[3].makespan_s:
-                plan, plan_pace = again, pace
+                plan = again
         plans.append(plan)
         if pays and len(arms) == 2 and not is_beam(cell):
-            plans += _seam_plans(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle, plan,
-                                 plan_pace)
+            plans += _seam_plans(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle, plan)
         plans += alone
     if len(arms) == 1:                   # one arm: its plan (an arm that cannot reach the model is an error)
         parts = split(job.mesh, cell, arms, seam, settings)
@@ -811,8 +814,7 @@ def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose
     if plans[best][0] is None and plans[best][2] is not None:     # planned in a worker: its parts cut again
         c = plans[best][3]
         parts = (split(job.mesh, cell, [cell.arm(c.arms[0])], settings=settings, reach=reach) if len(c.arms) == 1
-                 else split(job.mesh, cell, arms, seam, settings, reach,       # turned, or stepped
-                            pace if c.seam_offsets is None else plan_pace, c.seam_turn_deg, c.seam_offsets))
+                 else split(job.mesh, cell, arms, seam, settings, reach, c.pace, c.seam_turn_deg, c.seam_offsets))
         plans[best] = (parts,) + tuple(plans[best][1:])
     job.parts, job.sliced, job.programs = plans[best][0], plans[best][1], plans[best][2]
     if plans[best][3].arms != [a.name for a in arms]:
