@@ -10,6 +10,7 @@ it from a pre-shutdown hook registered after rospy's own, i.e. in that
 window, and reports what it saw."""
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -57,7 +58,7 @@ def _free_port():
 def test_a_publish_while_the_node_goes_down_is_dropped_quietly(tmp_path):
     port = _free_port()
     env = dict(os.environ, ROS_MASTER_URI="http://localhost:%d" % port, ROS_HOME=str(tmp_path / "ros_home"))
-    master = subprocess.Popen(["rosmaster", "--core", "-p", str(port)], env=env, stdout=subprocess.DEVNULL,
+    master = subprocess.Popen(["roscore", "-p", str(port)], env=env, stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         deadline = time.monotonic() + 20
@@ -70,8 +71,12 @@ def test_a_publish_while_the_node_goes_down_is_dropped_quietly(tmp_path):
         run = subprocess.run([sys.executable, "-c", CHILD], env=env, capture_output=True, text=True,
                              timeout=60)
     finally:
-        master.terminate()
-        master.wait(10)
+        os.killpg(master.pid, signal.SIGINT)      # roscore and the master and rosout it started
+        try:
+            master.wait(20)
+        except subprocess.TimeoutExpired:
+            os.killpg(master.pid, signal.SIGKILL)
+            master.wait(10)
     out = run.stdout + run.stderr
     assert run.returncode == 0, out
     seen = json.loads(out.split("SEEN ", 1)[1].splitlines()[0])
