@@ -151,14 +151,15 @@ def _stepped_side(model, normal, offset, offsets, bottoms):
     u = np.array([float(normal[0]), float(normal[1]), 0.0])
     if abs(float(normal[2])) > 1e-9 or np.linalg.norm(u) < 1e-9:
         raise ValueError("a stepped seam needs an upright seam plane, not normal %s" % (list(normal),))
-    u /= np.linalg.norm(u)
+    scale = float(np.linalg.norm(u))      # n . p >= o is (n / |n|) . p >= o / |n|
+    u, offset, offsets = u / scale, offset / scale, np.asarray(offsets, dtype=float) / scale
     z = np.array([0.0, 0.0, 1.0])
     v = np.cross(u, z)                    # along the seam: (u, z, v) is right-handed
     box = np.array(model.bounding_box(), dtype=float).reshape(2, 3)
     corners = np.array([[box[i][0], box[j][1], box[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
     pad = 10.0 + float(np.abs(offsets).max(initial=0.0))
-    s_lo, s_hi = corners @ u, corners @ v
-    s_far = float(s_lo.max()) + pad
+    across, along = corners @ u, corners @ v         # the box's corners across and along the seam
+    s_far = float(across.max()) + pad
     z_lo, z_hi = float(box[0][2]) - pad, float(box[1][2]) + pad
     starts = [0] + [i for i in range(1, len(offsets)) if offsets[i] != offsets[i - 1]]
     stairs = []                           # (s, z) up the seam side of the staircase
@@ -167,12 +168,12 @@ def _stepped_side(model, normal, offset, offsets, bottoms):
         lo = z_lo if g == 0 else float(bottoms[i])
         hi = z_hi if g + 1 == len(starts) else float(bottoms[starts[g + 1]])
         stairs += [(o, lo), (o, hi)]
-    # counter-clockwise in (s, z): along the far side downwards would be clockwise
-    ring = [(s_far, z_lo)] + [(s_far, z_hi)] + stairs[::-1]
+    # counter-clockwise in (s, z): up the far side, then down the stairs
+    ring = [(s_far, z_lo), (s_far, z_hi)] + stairs[::-1]
     section = m3.CrossSection([ring], m3.FillRule.NonZero)
-    length = float(s_hi.max() - s_hi.min()) + 2.0 * pad
+    length = float(along.max() - along.min()) + 2.0 * pad
     prism = m3.Manifold.extrude(section, length)         # (s, z) in x, y; the seam's direction in z
-    frame = np.column_stack([u, z, v, v * (float(s_hi.min()) - pad)])
+    frame = np.column_stack([u, z, v, v * (float(along.min()) - pad)])
     return prism.transform(frame.tolist())
 
 

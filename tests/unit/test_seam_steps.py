@@ -160,6 +160,10 @@ def test_a_seam_at_an_angle_stepped_on_every_layer_cuts_each_section_at_its_own_
             sides.append(d.min())
         # each part's section reaches that layer's line and no further
         assert min(sides) >= -1e-6 and max(sides) <= 1e-6, (i, sides)
+    # the same plane written with a normal twice as long (n . p >= o): the same parts
+    a2, _ = stepped_parts(model, [Part(None, model, [(2 * n, 2.0)]), Part(None, model, [(-2 * n, -2.0)])],
+                          2 * offsets, z, h)
+    assert (a.manifold - a2.manifold).volume() + (a2.manifold - a.manifold).volume() < 1e-6 * model.volume()
     with pytest.raises(ValueError, match="upright"):
         stepped_parts(model, [Part(None, model, [(np.array([0.0, 0.6, 0.8]), 0.0)]),
                               Part(None, model, [(np.array([0.0, -0.6, -0.8]), 0.0)])], offsets, z, h)
