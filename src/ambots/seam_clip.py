@@ -61,8 +61,8 @@ def _offsets(off, part):
 def at_layer(planes, index):
     """A prism's ``planes`` (:func:`prisms`) on layer ``index``: a stepped
     seam's per-layer offsets taken there (the last beyond them)."""
-    return [(n, off if np.ndim(off) == 0 else float(off[min(index, len(off) - 1)]), side)
-            for n, off, side in planes]
+    from ambots.seam_steps import offset_at
+    return [(n, offset_at(off, index), side) for n, off, side in planes]
 
 
 def clip_layer(layer, planes, link_max=None):

@@ -19,8 +19,8 @@ and a layer narrower than the zone about its seam is not moved (it is
 printed in turns whoever has it).  The job makes this plan beside the
 straight one's other variants and keeps it when faster
 (:func:`ambots.job._seam_plans`).
-The parts are the model cut slab by slab (:func:`stepped_parts`); each
-part keeps its straight plane (:attr:`ambots.partition.Part.planes`) and
+The parts are the model cut by one staircase prism (:func:`stepped_parts`);
+each part keeps its straight plane (:attr:`ambots.partition.Part.planes`) and
 the offset added to it on each layer
 (:attr:`ambots.partition.Part.layer_offsets`).
 
@@ -28,7 +28,7 @@ Units: mm in the bed frame."""
 import numpy as np
 
 __all__ = ["STEP_MM", "timed_offsets", "plan_offsets", "stepped_parts", "layer_segments", "largest_step",
-           "extremes"]
+           "extremes", "offset_at"]
 
 #: the most (mm) a stepped seam moves from one layer to the next; the seam
 #: zone is widened by the largest step taken
@@ -36,6 +36,12 @@ STEP_MM = 0.5
 #: offsets are rounded to this (mm): layers whose seam moves less than that
 #: share one slab of the parts
 QUANTUM_MM = 0.1
+
+
+def offset_at(o, k):
+    """A seam plane's offset on layer ``k``: ``o`` itself, or ``o[k]`` for a
+    stepped seam's (L,) offsets (the last beyond them)."""
+    return float(o) if np.ndim(o) == 0 else float(o[min(int(k), len(o) - 1)])
 
 
 def layer_segments(toolpaths):

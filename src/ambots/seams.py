@@ -39,6 +39,8 @@ Units: millimetres in the bed frame (the G-code frame).
 """
 import numpy as np
 
+from ambots.seam_steps import offset_at
+
 __all__ = ["SEAMS", "seam_kind", "interlock_depth_mm", "interlock_pieces", "seam_samples", "bonded_mask",
            "bonded_share", "deposit_beads_mm", "lap_order", "seam_setup", "seam_figures", "beads_in_bed_mm",
            "placed_model"]
@@ -215,12 +217,6 @@ def _line_intervals(polygons, c0, u, n2):
         ts.extend(((X - c0) @ u).tolist())
     ts = np.sort(ts)
     return list(zip(ts[0::2], ts[1::2]))
-
-
-def offset_at(o, k):
-    """A seam plane's offset on layer ``k``: ``o`` itself, or ``o[k]`` for a
-    stepped seam's (L,) offsets (:mod:`ambots.seam_steps`; the last beyond)."""
-    return float(o) if np.ndim(o) == 0 else float(o[min(int(k), len(o) - 1)])
 
 
 def seam_samples(model, planes, z_tops, heights, step_mm=0.2):
