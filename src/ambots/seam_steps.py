@@ -40,8 +40,8 @@ QUANTUM_MM = 0.1
 
 def offset_at(o, k):
     """A seam plane's offset on layer ``k``: ``o`` itself, or ``o[k]`` for a
-    stepped seam's (L,) offsets (the last beyond them)."""
-    return float(o) if np.ndim(o) == 0 else float(o[min(int(k), len(o) - 1)])
+    stepped seam's (L,) offsets (the first before them, the last beyond)."""
+    return float(o) if np.ndim(o) == 0 else float(o[min(max(int(k), 0), len(o) - 1)])
 
 
 def layer_segments(toolpaths):

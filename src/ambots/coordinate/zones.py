@@ -35,7 +35,8 @@ class LayerPlanes(dict):
         s = self.shifts.get(arm)
         if s is None or not len(s):
             return self[arm]
-        d = float(s[min(max(int(layer), 0), len(s) - 1)])
+        from ambots.seam_steps import offset_at
+        d = offset_at(s, layer)
         return [(n, off + d) for n, off in self[arm]]
 
 
