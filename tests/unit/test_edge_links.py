@@ -1,4 +1,4 @@
-"""Links along a band edge (``ambots.coordinate.banded._edge_links``): where
+"""Links along a band edge (``ambots.coordinate.links.edge_links``): where
 a two-arm plan's bands cut a zig-zag of infill, the pieces on each side of
 an edge are joined along it, as the slicer joins its lines at an outline.
 Checked on a real job (built-in slicer, the default cell) against its
@@ -17,6 +17,7 @@ import trimesh
 
 from ambots.config import default_cell_path, load_cell
 from ambots.coordinate import banded, home_positions_mm, park_positions_mm, read_sliced, seam_planes
+from ambots.coordinate import links as linking
 from ambots.coordinate.steps import Features
 from ambots.estimate import estimate_programs
 from ambots.gcode import Segment, parse_gcode_text
@@ -69,12 +70,12 @@ def plans(cell, block):
     """The block by both arms, with links and without (the limit 0)."""
     both = list(cell.arms)
     job = run_job(block, cell, both)
-    keep = banded.EDGE_LINK_MAX_MM
-    banded.EDGE_LINK_MAX_MM = 0.0
+    keep = linking.EDGE_LINK_MAX_MM
+    linking.EDGE_LINK_MAX_MM = 0.0
     try:
         bare = run_job(block, cell, both)
     finally:
-        banded.EDGE_LINK_MAX_MM = keep
+        linking.EDGE_LINK_MAX_MM = keep
     return job, bare
 
 
@@ -128,7 +129,7 @@ def test_links_lie_on_an_edge_between_infill_lines_and_add_only_themselves(plans
         by_layer = {}
         for i in links:
             a, b, _ = moves[i]
-            assert math.dist(a, b) <= banded.EDGE_LINK_MAX_MM + 1e-9
+            assert math.dist(a, b) <= linking.EDGE_LINK_MAX_MM + 1e-9
             for j in (i - 1, i + 1):             # between two moves of the part's infill, end to end
                 assert moves[j][1] == a if j < i else moves[j][0] == b
                 assert _on_any(moves[j][0], moves[j][1], infill), (moves[j], moves[i])
@@ -250,3 +251,32 @@ def test_no_link_along_a_perimeter_without_features_or_across_a_wall(cut_at_ever
     # one wall: only the link it crosses is left out
     bands = _banded(_layer([("Internal infill", ZIGZAG)] + walls[1:]))
     assert _links(bands[0]) == [(-1.0, 1.0)] and not _links(bands[1])
+
+
+def _chunked(read, bands=2, zone=20.0):
+    """The chunks of one arm's layer by the scheduled timeline
+    (``timeline._chunks``) on the side x >= 0 of a seam x = 0 whose zone is
+    ``zone`` mm: ``bands`` chunk bands, edges every zone / bands mm."""
+    from ambots.coordinate import timeline
+    N, O = np.array([[1.0, 0.0, 0.0]]), np.array([0.0])
+    seams = SimpleNamespace(names=["a"], useful={"a": np.array([True])}, Z={"a": np.array([zone])},
+                            N={"a": N}, O={"a": O}, dist=lambda n, pts: np.asarray(pts, float).reshape(-1, 3) @ N.T - O)
+    return timeline._chunks(seams, {"a": read}, 1, bands)[("a", 0)]
+
+
+def test_the_scheduled_timeline_links_its_chunks_along_their_edges(cut_at_every_crossing):
+    """Four arms in the corners (a scheduled timeline) cut a layer into
+    chunks by band; the zig-zag is linked along the chunk edge as the banded
+    sweeps link it, and a link moves nothing of a chunk nearer the seam (its
+    footprint, the closest distance to the plane, is the pieces')."""
+    chunks = _chunked(_layer([("Internal infill", ZIGZAG)]))
+    assert len(chunks) == 2                          # [0, 10) mm from the seam and [10, 20)
+    near, far = (pieces for pieces, _, _ in chunks)
+    assert _links(near) == [(-1.0, 1.0)] and _links(far) == [(-3.0, -1.0)]
+    for pieces, dmin, _ in chunks:
+        assert all(p.end == q.start for p, q in zip(pieces, pieces[1:]))     # one run each
+        ends = [p.start[0] for p in pieces if not _links([p])] + [p.end[0] for p in pieces if not _links([p])]
+        assert dmin[0] == pytest.approx(min(ends), abs=1e-9)
+    # a perimeter (or no features known) is never linked: each line a run of its own
+    for read in (_layer([("Perimeter", ZIGZAG)]), _layer([("Internal infill", ZIGZAG)], typed=False)):
+        assert not any(_links(pieces) for pieces, _, _ in _chunked(read))

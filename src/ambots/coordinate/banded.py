@@ -3,12 +3,11 @@ colours (two arms; a row of arms along a beam).  Each layer is cut into
 bands by distance from the nearest seam, and the two colours sweep the
 bands in opposite directions (:func:`banded_programs`; the bands' number
 and edges: :mod:`ambots.coordinate.bands`)."""
-import math
-
 import numpy as np
 
 from ambots.coordinate.bands import _phase_of, band_stats, choose_bands
 from ambots.coordinate.emit import ArmProgram, Emitter, resolve_waits
+from ambots.coordinate.links import edge_links
 from ambots.coordinate.parking import APPROACH_MM, lift_height
 from ambots.coordinate.steps import END, Step, Wait, _order_runs, close, cut_segment
 from ambots.coordinate.zones import distance_to_planes, planes_at
@@ -181,8 +180,9 @@ def _phases(arms, segs_by, planes, bounds, k, colour, n_layers, lo=None, feature
     """{(arm, layer, phase): (band, pieces)}: each arm's segments cut at its
     band edges (:func:`_cut_layer`; ``lo``: :func:`inner_limits`), by the
     phase in which it prints them, with links along the edges
-    (:func:`_edge_links`; ``features``: {arm: the features of its sliced
-    G-code, :class:`~ambots.coordinate.steps.Features`, or None})."""
+    (:func:`~ambots.coordinate.links.edge_links`; ``features``: {arm: the
+    features of its sliced G-code, :class:`~ambots.coordinate.steps.Features`,
+    or None})."""
     features = features or {}
     phases = {}
     for a in arms:
@@ -197,8 +197,8 @@ def _phases(arms, segs_by, planes, bounds, k, colour, n_layers, lo=None, feature
                 by_band[b].append(s)
                 by_src[b].append(i)
             if len(bounds[a.name]) > 1 and here:
-                by_band = [_edge_links(layer_segs, pieces, idx, here, bounds[a.name],
-                                        features.get(a.name))
+                edges = [bounds[a.name][1:]] * len(here)
+                by_band = [edge_links(layer_segs, pieces, idx, here, edges, features.get(a.name))
                            for pieces, idx in zip(by_band, by_src)]
             for b in range(k):
                 phases[a.name, layer, _phase_of(b, colour[a.name], layer, k)] = (b, by_band[b])
@@ -321,67 +321,6 @@ def _zigzag_bands(segs, P0, P1, mids, flag, planes, t, lo, cuts, cut_mids):
         for i, vb in whole.items():
             out[i] = vb
     return out
-
-
-#: the longest link along a band edge (mm): the built-in slicer links its
-#: sparse infill lines within 3 spacings (6.1 mm at 20 %,
-#: :data:`ambots.slicer.SPARSE_LINK_SPACINGS`); at 45 deg to an edge the
-#: lines of 20 % infill meet it 2.9 mm apart, of solid infill 0.64 mm
-EDGE_LINK_MAX_MM = 6.0
-
-
-def _edge_links(layer_segs, pieces, src, planes, t, features):
-    """One band's pieces of a layer, in the slicer's order (``src``: the
-    index in ``layer_segs`` of the segment each piece is, or was cut from),
-    with an extruded link along a band edge wherever the slicer's infill
-    path left the band across an edge and came back across the same edge:
-    the zig-zag's turn the slicer makes at an outline, made at the edge
-    (the pieces that the other band's link joins on its side lie between
-    the same points, so the two bands' links meet end to end along the
-    edge, as at a seam, :func:`ambots.seam_clip.clip_paths`).  Without a
-    link each piece of a line cut at an edge starts and ends at rest with a
-    retracted travel between: on the demo block 544 travels per arm at its
-    band edge, 117 s.  A link is made when the path between its ends was
-    one run of extrusion of infill (``features``:
-    :class:`~ambots.coordinate.steps.Features` of the sliced G-code; none
-    known: no link), both ends lie on the same edge of the same seam
-    plane, at most :data:`EDGE_LINK_MAX_MM` apart, and the link crosses no
-    extrusion of the layer (a wall between them: a hole or another
-    island)."""
-    if len(pieces) < 2 or features is None or not len(features.starts):
-        return pieces
-    from ambots.slicer import crossing
-    edges = np.asarray(t[1:], dtype=float)
-    out = [pieces[0]]
-    walls = None
-    for prev, cur, i0, i1 in zip(pieces[:-1], pieces[1:], src[:-1], src[1:]):
-        a, b = prev.end, cur.start
-        gap = math.hypot(a[0] - b[0], a[1] - b[1])
-        if (prev.extrude and cur.extrude and i1 > i0 and a != b and a[2] == b[2] and gap <= EDGE_LINK_MAX_MM
-                and _on_same_edge(a, b, planes, edges)
-                and all(layer_segs[j].extrude and layer_segs[j].start == layer_segs[j - 1].end
-                        for j in range(i0 + 1, i1 + 1))
-                and features.infill(layer_segs[i0].line) and features.infill(layer_segs[i1].line)):
-            if walls is None:
-                ext = [s for s in layer_segs if s.extrude and s.start != s.end]
-                walls = np.array([[s.start[:2], s.end[:2]] for s in ext], dtype=float).reshape(-1, 2, 2)
-            u = np.subtract(b[:2], a[:2]) * (1e-3 / gap)     # the lines that end there touch it at its ends
-            if not crossing(np.array([a[:2]]) + u, np.array([b[:2]]) - u, walls)[0]:
-                length = math.dist(prev.start, prev.end)
-                out.append(prev._replace(start=a, end=b, e=prev.e * gap / length if length > 0 else 0.0))
-        out.append(cur)
-    return out
-
-
-def _on_same_edge(a, b, planes, edges):
-    """Whether points ``a`` and ``b`` (mm) both lie on one band edge
-    (``edges``: distances from a seam plane) of the same plane of ``planes``."""
-    for n, off in planes:
-        da = float(np.dot(n, a) - off)
-        db = float(np.dot(n, b) - off)
-        if abs(da - db) < 1e-6 and np.abs(edges - abs(da)).min() < 1e-6:
-            return True
-    return False
 
 
 def _split_at_bands(seg, planes, t):

@@ -10,6 +10,7 @@ import bisect
 import numpy as np
 
 from ambots.coordinate.emit import ArmProgram, Emitter, resolve_waits
+from ambots.coordinate.links import edge_links
 from ambots.coordinate.lookahead import layer_orders
 from ambots.coordinate.schedule import Schedule
 from ambots.coordinate.steps import Step, Wait, close, cut_segment
@@ -177,24 +178,39 @@ def _chunks(seams, read, n_layers, bands):
     """{(arm, layer): [(pieces, closest distance to each plane (P,), level)]}:
     the arm's extrusions on the layer cut into pieces and grouped by band
     (width zone / ``bands``) of distance to each useful plane, all pieces
-    beyond the zone in one band; ``level``: the nearest band to a seam."""
+    beyond the zone in one band; ``level``: the nearest band to a seam.  A
+    chunk's pieces keep the slicer's order, joined where its infill left
+    the chunk across a band edge and came back across the same edge
+    (:func:`~ambots.coordinate.links.edge_links`: without, each line of a
+    zig-zag cut at an edge is a run of its own, with a retracted travel to
+    the next)."""
     chunks = {}
     for n in seams.names:
         useful = seams.useful[n]
         W = np.where(useful, seams.Z[n] / bands, np.inf)
+        planes = list(zip(seams.N[n], seams.O[n]))
+        edges = [w * np.arange(1, bands + 1) if u else np.zeros(0) for w, u in zip(W, useful)]
+        features = getattr(read[n], "features", None)
         for layer in range(n_layers):
-            segs = [s for s in read[n][1].get(layer, []) if s.extrude and s.start != s.end]
-            pieces = [p for s in segs for p in _split_at(s, seams.N[n], seams.O[n], W, bands)]
+            layer_segs = read[n][1].get(layer, [])
+            pieces, src = [], []
+            for i, s in enumerate(layer_segs):
+                if s.extrude and s.start != s.end:
+                    cut = _split_at(s, seams.N[n], seams.O[n], W, bands)
+                    pieces += cut
+                    src += [i] * len(cut)
             groups = {}
             if pieces:
                 mid = np.array([np.add(p.start, p.end) / 2.0 for p in pieces])
                 keys = np.minimum(np.floor(seams.dist(n, mid) / np.maximum(W, 1e-9)), bands).astype(int)
                 keys[:, ~useful] = 0
-                for p, key in zip(pieces, map(tuple, keys)):
-                    groups.setdefault(key, []).append(p)
+                for p, i, key in zip(pieces, src, map(tuple, keys)):
+                    groups.setdefault(key, ([], []))
+                    groups[key][0].append(p)
+                    groups[key][1].append(i)
             out = []
             for key in sorted(groups):
-                ps = groups[key]
+                ps = edge_links(layer_segs, groups[key][0], groups[key][1], planes, edges, features)
                 pts = np.array([p.start for p in ps] + [p.end for p in ps], dtype=float)
                 dmin = seams.dist(n, pts).min(axis=0) if len(seams.N[n]) else np.zeros(0)
                 level = min([k for k, u in zip(key, useful) if u] or [bands])
