@@ -482,6 +482,110 @@ REBALANCE_SHARE = 0.004
 PACE_DIGITS = 6
 
 
+def _pays(plan, timed):
+    """Whether ``plan`` (parts, sliced, programs, Candidate) is faster than
+    each arm alone (``timed``: their makespans, s)."""
+    return bool(timed) and plan[3].makespan_s is not None and plan[3].makespan_s < min(timed)
+
+
+def _pace_of(plan, arms, timed):
+    """Each arm's pace ({name: busy / mean busy}) to split ``plan`` of
+    ``arms`` again by, or None: only when cooperating pays (``timed``: each
+    arm alone, s) and the busy times differ by more than
+    :data:`REBALANCE_SHARE`."""
+    busy = plan[3].busy_s
+    if not (_pays(plan, timed) and busy and len(busy) == len(arms)
+            and max(busy.values()) > (1.0 + REBALANCE_SHARE) * min(busy.values())):
+        return None
+    mean = sum(busy.values()) / len(busy)
+    return {n: round(b / mean, PACE_DIGITS) for n, b in busy.items()}
+
+
+def _rebalanced(job, cell, arms, seam, settings, reach, slicer, whole, mode, idle, plan, timed):
+    """``plan`` of ``arms`` together, or the same arms split again with each
+    arm's share sized by how long its part took (:func:`_pace_of`), when
+    that is faster.  Returns (the plan, the pace tried or None)."""
+    pace = _pace_of(plan, arms, timed)
+    if pace is not None:
+        again = _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle)
+        if again[3].makespan_s is not None and again[3].makespan_s < plan[3].makespan_s:
+            plan = again
+    return plan, pace
+
+
+#: a cell of three or four arms also makes the plan of every smaller group of
+#: two or more of its arms together, the others parked (:func:`_group_plans`):
+#: in the four-arm cell the demo block takes 7,909 s on all four arms, whose
+#: zones cover its 40 mm width, and 5,280 s on two of them (session 33).  A
+#: larger cell (the eight-arm beam: 246 groups) does not
+GROUPS_MAX_ARMS = 4
+
+
+def _groups(arms):
+    """The groups of two or more of ``arms``, fewer than all, in the cell's
+    order, the smallest first (none for fewer than three arms or more than
+    :data:`GROUPS_MAX_ARMS`)."""
+    import itertools
+    if not 3 <= len(arms) <= GROUPS_MAX_ARMS:
+        return []
+    return [list(g) for k in range(2, len(arms)) for g in itertools.combinations(arms, k)]
+
+
+#: a group's plan is first made with the arms' shares by volume; those within
+#: this share of the fastest plan so far are then split again by pace
+#: (:func:`_rebalanced`), which gained 0.5-1.1 % on two arms (the demo block)
+GROUP_AGAIN_SHARE = 0.05
+
+
+def _group_plans(job, cell, arms, seam, settings, reach, slicer, whole, mode, idle, timed, known):
+    """The plan of each smaller group of ``arms`` together (:func:`_groups`;
+    the cell's other arms parked first, as for an arm alone), made side by
+    side (:func:`ambots.parallel.fork_map`), each arm's share by volume
+    (:func:`_cooperative`); those within :data:`GROUP_AGAIN_SHARE` of the
+    fastest plan so far are then split again by pace (:func:`_rebalanced`),
+    as the plan of all.
+    Returns [(None, sliced, programs, Candidate)], without parts (cut again
+    if chosen).  ``timed``: each arm alone, s; ``known``: the makespans of
+    the plans made so far.  A plan slower than the fastest by more than
+    :data:`TIE_SHARE` cannot be chosen: it comes back timed, without
+    programs.  One that cannot be made (a part out of an arm's reach) is a
+    plan not timed, with the reason as its note."""
+    from ambots.parallel import fork_map
+    groups = _groups(arms)
+    best = min([t for t in list(timed) + list(known) if t] or [math.inf])
+
+    def build(spec):                     # (sliced, programs, Candidate, the pace to split it again by)
+        group, pace, bar = spec
+        names = [a.name for a in group]
+        rest = idle + [a for a in arms if a.name not in names]
+        try:
+            plan = _cooperative(job, cell, group, seam, settings, reach, pace, slicer, whole, mode, rest)
+        except AmbotsError as exc:       # a part out of an arm's reach, an arm that cannot reach a move
+            return None, None, Candidate(names, mode, None, str(exc)), None
+        c, again = plan[3], _pace_of(plan, group, timed) if pace is None else None
+        if c.makespan_s is None or c.makespan_s > bar:
+            return None, None, replace(c, programs=None, events=None), again
+        return {n: _Text(t) for n, t in plan[1].items()}, plan[2], c, again
+
+    made = fork_map(build, [(g, None, best * (1.0 + GROUP_AGAIN_SHARE)) for g in groups])
+    best = min([best] + [m[2].makespan_s for m in made if m[2].makespan_s])
+    near = best * (1.0 + GROUP_AGAIN_SHARE)
+    again = [i for i, m in enumerate(made) if m[3] is not None and m[2].makespan_s <= near]
+    for i, m in zip(again, fork_map(build, [(groups[i], made[i][3], best * (1.0 + TIE_SHARE)) for i in again])):
+        if m[2].makespan_s is not None and m[2].makespan_s < made[i][2].makespan_s:
+            made[i] = m
+    best = min([best] + [m[2].makespan_s for m in made if m[2].makespan_s])
+    out = []
+    for sliced, programs, c, _ in made:
+        if programs is not None and c.makespan_s <= best * (1.0 + TIE_SHARE):
+            sliced = {n: t.text for n, t in sliced.items()}
+            c.programs = _own_arms(programs, cell)
+        else:                            # cannot be chosen: timed, without programs
+            programs, sliced, c = None, None, replace(c, programs=None, events=None)
+        out.append((None, sliced, programs, c))
+    return out
+
+
 def _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle, turn_deg=0.0,
                  zone_floor=None, offsets=None):
     """The plan of ``arms`` together: (parts, sliced, programs, Candidate);
@@ -497,9 +601,8 @@ def _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mo
         zone = max([zone_floor] + [z for ps in ([parts] if offsets is None else [parts] + extremes(parts))
                                    for z in seam_zones_for(cell, arms, ps).values()])
     programs = coordinate(sliced, parts, cell, mode, idle=idle, zone_mm=zone)
-    return _fastest_schedule(_plan(parts, sliced, programs, [a.name for a in arms], mode, cell, turn_deg, offsets,
-                                   pace),
-                             cell, mode, idle)
+    plan = _plan(parts, sliced, programs, [a.name for a in arms], mode, cell, turn_deg, offsets, pace)
+    return _fastest_schedule(plan, cell, mode, idle)
 
 
 #: a plan of two arms that beats each arm alone is also made with the seam
@@ -698,7 +801,8 @@ def run_job(model_path, cell, arms=None, slicer="builtin", mode="concurrent", se
 
     ``arms``: the arms to print with (default: all of the cell's).  With
     ``choose`` (default: when ``arms`` is not given, in concurrent mode) the planner also
-    considers every arm alone: each plan is timed by the one timing law
+    considers every arm alone, and in a cell of three or four arms every
+    smaller group of them (:func:`_group_plans`): each plan is timed by the one timing law
     (:func:`ambots.estimate.estimate_programs`) and the fastest one is
     chosen, fewer arms unless more are faster by more than ``TIE_SHARE``.
     A plan of several arms that beats each arm alone is split once more with
@@ -763,7 +867,6 @@ def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose
     idle = [a for a in cell.arms if a.name not in {b.name for b in arms}]
     plans = []
     reach = {}                           # the reach checks of this mesh, shared by the plans
-    pace = None                          # the arms' pace of a plan split again (:data:`REBALANCE_SHARE`)
     whole = None
     if slicer == "builtin":              # the whole model sliced once for the parts and the arms alone
         from ambots.slicer import SliceSettings, WholeModel
@@ -789,19 +892,21 @@ def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose
             raise
         alone = _received(background.result(), cell) if background else []
         timed = [p[3].makespan_s for p in alone if p[3].makespan_s]
-        busy = plan[3].busy_s
-        pays = bool(timed) and plan[3].makespan_s is not None and plan[3].makespan_s < min(timed)
-        if (pays and busy and len(busy) == len(arms)
-                and max(busy.values()) > (1.0 + REBALANCE_SHARE) * min(busy.values())):
-            # cooperating pays: split again, each arm's share sized by how long its part took
-            mean = sum(busy.values()) / len(busy)
-            pace = {n: round(b / mean, PACE_DIGITS) for n, b in busy.items()}
-            again = _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle)
-            if again[3].makespan_s is not None and again[3].makespan_s < plan[3].makespan_s:
-                plan = again
+        plan, pace = _rebalanced(job, cell, arms, seam, settings, reach, slicer, whole, mode, idle, plan, timed)
         plans.append(plan)
-        if pays and len(arms) == 2 and not is_beam(cell):
-            plans += _seam_plans(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle, plan)
+        if choose:
+            plans += _group_plans(job, cell, arms, seam, settings, reach, slicer, whole, mode, idle, timed,
+                                  [plan[3].makespan_s])
+        pairs = [p for p in plans if len(p[3].arms) == 2 and p[2] is not None and _pays(p, timed)]
+        if pairs and not is_beam(cell):  # the fastest plan of two arms that pays, with its seam turned or stepped
+            pair = min(pairs, key=lambda p: p[3].makespan_s)
+            group = [cell.arm(n) for n in pair[3].arms]
+            rest = idle + [a for a in arms if a.name not in pair[3].arms]
+            if pair[0] is None:          # made in a worker: its parts cut again (the stepped seam needs them)
+                c = pair[3]
+                pair = (split(job.mesh, cell, group, seam, settings, reach, c.pace),) + tuple(pair[1:])
+            plans += _seam_plans(job, cell, group, seam, settings, reach, pace if pair is plan else pair[3].pace,
+                                 slicer, whole, mode, rest, pair)
         plans += alone
     if len(arms) == 1:                   # one arm: its plan (an arm that cannot reach the model is an error)
         parts = split(job.mesh, cell, arms, seam, settings)
@@ -813,8 +918,9 @@ def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose
         best = 0
     if plans[best][0] is None and plans[best][2] is not None:     # planned in a worker: its parts cut again
         c = plans[best][3]
-        parts = (split(job.mesh, cell, [cell.arm(c.arms[0])], settings=settings, reach=reach) if len(c.arms) == 1
-                 else split(job.mesh, cell, arms, seam, settings, reach, c.pace, c.seam_turn_deg, c.seam_offsets))
+        group = [cell.arm(n) for n in c.arms]
+        parts = (split(job.mesh, cell, group, settings=settings, reach=reach) if len(c.arms) == 1
+                 else split(job.mesh, cell, group, seam, settings, reach, c.pace, c.seam_turn_deg, c.seam_offsets))
         plans[best] = (parts,) + tuple(plans[best][1:])
     job.parts, job.sliced, job.programs = plans[best][0], plans[best][1], plans[best][2]
     if plans[best][3].arms != [a.name for a in arms]:

@@ -37,18 +37,21 @@ class SimResult:
     wall_time_s: float = 0.0
     finished: bool = False
     reason: str = ""
+    #: the runners' names of the cell's arms without a program (parked by an A7)
+    idle: tuple = ()
 
     @property
     def makespan_s(self):
-        """Simulated time from the first motion of any arm to the last arm done."""
+        """Simulated time from the first motion of any arm to the last arm
+        with a program done."""
         starts = [r.stats.first_motion_s for r in self.runners.values() if r.stats.first_motion_s is not None]
-        ends = [r.stats.done_s if r.stats.done_s is not None else r.clock for r in self.runners.values()
-                if r.stats.first_motion_s is not None]
+        ends = [r.stats.done_s if r.stats.done_s is not None else r.clock for n, r in self.runners.items()
+                if r.stats.first_motion_s is not None and n not in self.idle]
         return (max(ends) - min(starts)) if starts else 0.0
 
 
 def simulate(programs, cell, dt=2.0, max_time=10 * 24 * 3600.0, planner_kw=None, slow=None,
-             planner_cls=None, runner_cls=None, seed=0):
+             planner_cls=None, runner_cls=None, seed=0, idle=()):
     """Run the programs of a job to completion.
 
     ``programs``: {arm name: :class:`~ambots.coordinate.ArmProgram`};
@@ -66,7 +69,11 @@ def simulate(programs, cell, dt=2.0, max_time=10 * 24 * 3600.0, planner_kw=None,
     ``planner_kw`` gives an ``is_valid``; ``planner_cls``/``runner_cls``:
     subclasses of :class:`~ambots.motion.MotionPlanner` /
     :class:`~ambots.runner.ArmRunner` to use instead (e.g. ones that record
-    more, see :mod:`ambots.export`).  Returns :class:`SimResult`."""
+    more, see :mod:`ambots.export`); ``idle``: arms of the cell without a
+    program, which stand at home until a program's A7 parks them (a job of
+    one arm, or of a group of the cell's arms): they move and are checked
+    for contacts like the others, and are done when they stand still.
+    Returns :class:`SimResult`."""
     from ambots.collision import CollisionCheck
     from ambots.motion import MotionPlanner
     t_wall = time.perf_counter()
@@ -83,8 +90,19 @@ def simulate(programs, cell, dt=2.0, max_time=10 * 24 * 3600.0, planner_kw=None,
             else:
                 planner.time_scale = float(factor)
         runners[name] = (runner_cls or ArmRunner)(prog.arm, cell, planner=planner, record=True)
+    idle = [a for a in idle if a.name not in programs]
+    for i, arm in enumerate(idle, start=len(runners)):
+        kw = dict(planner_kw or {})
+        kw.setdefault("is_valid", CollisionCheck(arm, cell))
+        planner = (planner_cls or MotionPlanner)(arm, cell, **kw)
+        if slow and arm.name in slow and not np.ndim(slow[arm.name]):
+            planner.time_scale = float(slow[arm.name])
+        elif slow and arm.name in slow:
+            lo, hi = (float(v) for v in slow[arm.name])
+            planner.time_jitter = (np.random.default_rng([int(seed), i]), lo, hi)
+        runners[arm.name] = (runner_cls or ArmRunner)(arm, cell, planner=planner, record=True)
     by_id = {r.id: r for r in runners.values()}
-    result = SimResult(runners)
+    result = SimResult(runners, idle=tuple(a.name for a in idle))
 
     def deliver(t_sent, msg, src):
         result.messages += 1
@@ -121,7 +139,9 @@ def simulate(programs, cell, dt=2.0, max_time=10 * 24 * 3600.0, planner_kw=None,
             result.reason = "arm error"
             break
         if not any(s in active for s in states):
-            result.finished = all(s is ArmState.DONE for s in states)
+            # done: every arm with a program; an idle arm, standing still where it was sent
+            result.finished = all(r.state is (ArmState.IDLE if n in result.idle else ArmState.DONE)
+                                  and (n not in result.idle or r.block is None) for n, r in runners.items())
             if not result.finished:
                 result.reason = "arms idle but not done: %s" % {n: r.state.name for n, r in runners.items()}
             break

@@ -33,7 +33,9 @@ def plan_job(model, cell, arms=None, slicer="builtin", mode="concurrent", seam="
     t0 = time.perf_counter()
     job = run_job(model, cell, arms, slicer, mode, seam, scale, settings=settings)
     t_job = time.perf_counter() - t0
-    result = simulate(job.programs, cell, slow=slow, seed=seed)
+    # the cell's arms without a program stand at home until parked (A7): simulated and checked too
+    idle = [a for a in cell.arms if a.name not in job.programs]
+    result = simulate(job.programs, cell, slow=slow, seed=seed, idle=idle)
     motion = check_motion(result, cell)
     rep = report(result, motion, job, wall_time_s=time.perf_counter() - t0)
     rep["slice_wall_time_s"] = round(t_job, 3)

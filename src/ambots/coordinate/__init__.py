@@ -72,6 +72,7 @@ from ambots.coordinate.timeline import timeline_programs
 from ambots.coordinate.zones import (LayerPlanes, adjacent_arms, seam_planes, seam_zone_for, seam_zones_for,
                                      two_colours)
 from ambots.errors import AmbotsError
+from ambots.protocol import MoveTo
 
 __all__ = ["ArmProgram", "build_programs", "CHUNK_BANDS", "CHUNK_BAND_CHOICES", "park_positions_mm",
            "home_positions_mm", "seam_zone_for",
@@ -96,9 +97,10 @@ def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=No
         from the arms' real geometry in the poses they print these parts
         in, :func:`seam_zones_for`
     park : optional {arm name: (x, y, z) mm} overriding the park positions
-    idle : arms of the cell without work in this job: a one-arm job (or a
-        sequential one) sends them to their park positions first (A7), as
-        sequential mode does with the arms that wait for their turn
+    idle : arms of the cell without work in this job: the first arm's
+        program sends them to their park positions first (A7), as
+        sequential mode does with the arms that wait for their turn (a
+        job of one arm, or of a group of the cell's arms)
     slab_mm : sequential mode: the most a round's slab may rise over its
         first layer (default: from the print heads,
         :func:`~ambots.coordinate.sequential.slab_rounds`)
@@ -137,8 +139,11 @@ def build_programs(sliced, parts, cell, mode="concurrent", zone_mm=None, park=No
         step = max(largest_step(s) for s in shifts.values())
         zones = {pair: z + step for pair, z in zones.items()}
     home = home_positions_mm(cell, arms)
+    # the cell's arms without work (a group of its arms prints): parked first, as for an arm alone
+    opening = {arms[0].name: [MoveTo(o.id, *(round(float(v), 3) for v in park[o.name])) for o in idle]
+               } if idle else {}
     return _concurrent(arms, read, park, home, n_layers, planes, zones, JointMoves(cell, arms),
-                       CHUNK_BANDS if chunk_bands is None else chunk_bands, shifts)
+                       CHUNK_BANDS if chunk_bands is None else chunk_bands, shifts, opening)
 
 
 def _read(gcode, path):
@@ -160,10 +165,12 @@ CHUNK_BANDS = 4
 CHUNK_BAND_CHOICES = (1, 2, 3, 4)
 
 
-def _concurrent(arms, read, park, home, n_layers, planes, zones, moves=None, chunk_bands=CHUNK_BANDS, shifts=None):
+def _concurrent(arms, read, park, home, n_layers, planes, zones, moves=None, chunk_bands=CHUNK_BANDS, shifts=None,
+                opening=None):
     """Banded sweeps when the adjacent arms have two colours and every arm
     can keep clear of its seams; otherwise the scheduled timeline.
-    ``shifts``: a stepped seam's {arm: (L,) mm per layer} (banded only)."""
+    ``shifts``: a stepped seam's {arm: (L,) mm per layer} (banded only);
+    ``opening``: {arm: [messages]} its program sends first (A7 to the idle arms)."""
     names = [a.name for a in arms]
     adjacent = adjacent_arms(arms, read, planes, zones)
     colour = two_colours(names, adjacent)
@@ -172,7 +179,8 @@ def _concurrent(arms, read, park, home, n_layers, planes, zones, moves=None, chu
         if shifts:
             near = LayerPlanes(near, shifts)
         zone = max([zones[a, b] for a in names for b in adjacent[a]] or [0.0])
-        programs = banded_programs(arms, read, park, n_layers, zone, near, colour, adjacent, home, zones, moves)
+        programs = banded_programs(arms, read, park, n_layers, zone, near, colour, adjacent, home, zones, moves,
+                                   opening)
         if programs is not None:
             return programs
     if shifts:
@@ -181,4 +189,4 @@ def _concurrent(arms, read, park, home, n_layers, planes, zones, moves=None, chu
     # no two colours, or an arm between two seams cannot stand clear of both
     # (their zones about as wide as its part): the scheduled timeline
     return timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent, bands=chunk_bands,
-                             moves=moves)
+                             moves=moves, opening=opening)

@@ -16,7 +16,7 @@ __all__ = ["banded_programs"]
 
 
 def banded_programs(arms, read, park, n_layers, zone_mm, planes, colour, adjacent, home=None, zones=None,
-                    moves=None):
+                    moves=None, opening=None):
     """Two colours (every seam between adjacent arms separates a colour-0
     from a colour-1 arm).  ``planes[arm]``: the planes (n, o) between the
     arm and its adjacent arms; ``zone_mm``: the largest zone of an adjacent
@@ -50,7 +50,8 @@ def banded_programs(arms, read, park, n_layers, zone_mm, planes, colour, adjacen
     done, lifted straight up first as high as the A7 needs to keep clear
     of the bed and the part (:func:`~ambots.coordinate.parking.lift_height`
     with ``moves``, :class:`~ambots.coordinate.parking.JointMoves`; 10 mm
-    over the part without).  Returns the programs, or None when an arm with no work in a band
+    over the part without).  ``opening``: {arm: [messages]} its program
+    sends before anything else (A7 to the cell's idle arms).  Returns the programs, or None when an arm with no work in a band
     cannot retreat into it without coming nearer than the band to another
     of its seams (:func:`_retreat`)."""
     names = [a.name for a in arms]
@@ -75,6 +76,8 @@ def banded_programs(arms, read, park, n_layers, zone_mm, planes, colour, adjacen
         em = Emitter(a, "concurrent", ["; seam zone %.1f mm, %d band(s) per layer from %s mm, colour %d"
                                        % (zone_mm, k, " ".join("%.3f" % v for v in bounds[a.name]), colour[a.name])])
         nb = [o for o in arms if o.name in adjacent[a.name]]
+        if (opening or {}).get(a.name):
+            em.step(Step(directives=list(opening[a.name])))
         if parks_first[a.name]:
             em.step(Step(park=park[a.name], report=nb[0].id, mark="parked"))
         em.step(Step(waits=[Wait(other, "parked") for other in park_waits[a.name]]))

@@ -35,7 +35,7 @@ SCHEDULES = ("priority", "greedy", "lookahead")
 
 
 def timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4, kinds=SCHEDULES,
-                      moves=None):
+                      moves=None, opening=None):
     """Any adjacency (an odd cycle of adjacent arms: three or more around a point).
 
     Each arm's layer is cut into *chunks*: pieces of its extrusions grouped
@@ -71,7 +71,8 @@ def timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent,
     real durations, two steps (or an arm standing between them) that overlap
     in reality were then checked against each other in the schedule or keep
     the zone; waits only name steps that end earlier in the schedule, so
-    they cannot form a cycle."""
+    they cannot form a cycle.  ``opening``: {arm: [messages]} its program
+    sends before anything else (A7 to the cell's idle arms)."""
     global _last_schedule
     seams = Seams(arms, read, planes, zones, adjacent, moves)
     chunks = _chunks(seams, read, n_layers, bands)
@@ -91,7 +92,9 @@ def timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent,
     for n in seams.names:
         extra = ["; seam zones %s mm, %d chunk band(s) per seam, scheduled"
                  % (", ".join("%s %.1f" % (b, zones[n, b]) for b in seams.nbrs[n]) or "-", bands)]
-        emitters[n] = Emitter(arm_of[n], "concurrent", extra).steps(_steps(acts[n], seams.names, park[n], n_layers))
+        first = [Step(directives=list(opening[n]))] if (opening or {}).get(n) else []
+        emitters[n] = Emitter(arm_of[n], "concurrent", extra).steps(first + _steps(acts[n], seams.names, park[n],
+                                                                                   n_layers))
     resolve_waits(emitters)
     return {n: ArmProgram(arm_of[n], "concurrent", emitters[n].lines, read[n][0], n_layers, bands + 1,
                           start_first=True, events=emitters[n].events(), chunk_bands=bands) for n in seams.names}
