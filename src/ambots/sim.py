@@ -77,29 +77,19 @@ def simulate(programs, cell, dt=2.0, max_time=10 * 24 * 3600.0, planner_kw=None,
     from ambots.collision import CollisionCheck
     from ambots.motion import MotionPlanner
     t_wall = time.perf_counter()
+    idle = [a for a in idle if a.name not in programs]
     runners = {}
-    for i, (name, prog) in enumerate(programs.items()):
+    for i, arm in enumerate([p.arm for p in programs.values()] + idle):
         kw = dict(planner_kw or {})
-        kw.setdefault("is_valid", CollisionCheck(prog.arm, cell))     # the firmware node's check, the bed only
-        planner = (planner_cls or MotionPlanner)(prog.arm, cell, **kw)
-        if slow and name in slow:
-            factor = slow[name]
+        kw.setdefault("is_valid", CollisionCheck(arm, cell))     # the firmware node's check, the bed only
+        planner = (planner_cls or MotionPlanner)(arm, cell, **kw)
+        if slow and arm.name in slow:
+            factor = slow[arm.name]
             if np.ndim(factor):
                 lo, hi = (float(v) for v in factor)
                 planner.time_jitter = (np.random.default_rng([int(seed), i]), lo, hi)
             else:
                 planner.time_scale = float(factor)
-        runners[name] = (runner_cls or ArmRunner)(prog.arm, cell, planner=planner, record=True)
-    idle = [a for a in idle if a.name not in programs]
-    for i, arm in enumerate(idle, start=len(runners)):
-        kw = dict(planner_kw or {})
-        kw.setdefault("is_valid", CollisionCheck(arm, cell))
-        planner = (planner_cls or MotionPlanner)(arm, cell, **kw)
-        if slow and arm.name in slow and not np.ndim(slow[arm.name]):
-            planner.time_scale = float(slow[arm.name])
-        elif slow and arm.name in slow:
-            lo, hi = (float(v) for v in slow[arm.name])
-            planner.time_jitter = (np.random.default_rng([int(seed), i]), lo, hi)
         runners[arm.name] = (runner_cls or ArmRunner)(arm, cell, planner=planner, record=True)
     by_id = {r.id: r for r in runners.values()}
     result = SimResult(runners, idle=tuple(a.name for a in idle))
