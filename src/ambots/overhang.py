@@ -84,6 +84,13 @@ def _paths(events):
     return paths
 
 
+def extrusion_paths(events):
+    """:func:`_paths` of one program as arrays ((m, 2, 3) each, mm): what
+    :func:`unsupported_extrusion` measures of it (``paths``), cheap to send
+    from a worker process."""
+    return [np.asarray(p, dtype=float).reshape(-1, 2, 3) for p in _paths(events)]
+
+
 #: the layer below is sampled at most this far apart (mm) for :class:`_Below`'s
 #: k-d tree: finer settles more points by the tree, for a larger tree (on the
 #: 60 mm sphere's program, one process: 0.1 mm 1.6 s, 0.2 mm 1.45 s, 0.3 mm 1.55 s)
@@ -250,14 +257,15 @@ def _bridged(supported, weights, path_id, bridge_max_mm):
 
 
 def unsupported_extrusion(programs: Iterable, bead_width_mm=DEFAULT_BEAD_WIDTH_MM,
-                          bridge_max_mm=DEFAULT_BRIDGE_MAX_MM, step_mm=0.2, layer_height_mm=None):
+                          bridge_max_mm=DEFAULT_BRIDGE_MAX_MM, step_mm=0.2, layer_height_mm=None, paths=None):
     """How much extrusion has nothing under it, by the rule of the module doc.
 
     ``programs``: iterables of G-code events (:func:`ambots.gcode.read_gcode`
     or :func:`~ambots.gcode.parse_gcode_text`), one per program, all in one
     frame (a job's programs together: a bead may rest on another arm's).
     ``layer_height_mm``: the nominal layer height ``h`` (None:
-    :func:`nominal_layer_height` of the G-code).
+    :func:`nominal_layer_height` of the G-code).  ``paths``: the programs'
+    :func:`extrusion_paths` one after the other, instead of ``programs``.
 
     Returns a dict: ``extruded_mm`` (extruding path length), ``unsupported_mm``,
     ``unsupported_share`` (0..1; 0 if nothing is extruded), ``bridged_mm``
@@ -269,7 +277,8 @@ def unsupported_extrusion(programs: Iterable, bead_width_mm=DEFAULT_BEAD_WIDTH_M
     """
     if not bead_width_mm > 0 or not bridge_max_mm >= 0 or not step_mm > 0:
         raise ValueError("bead_width_mm and step_mm must be > 0 and bridge_max_mm >= 0")
-    paths = [p for events in programs for p in _paths(events)]
+    if paths is None:
+        paths = [p for events in programs for p in _paths(events)]
     result = {"extruded_mm": 0.0, "unsupported_mm": 0.0, "unsupported_share": 0.0, "bridged_mm": 0.0,
               "layers": 0, "unsupported_layers": [], "bead_width_mm": bead_width_mm,
               "bridge_max_mm": bridge_max_mm, "layer_height_mm": None}

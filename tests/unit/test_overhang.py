@@ -358,3 +358,32 @@ def test_the_layer_below_is_measured_exactly_where_its_tree_points_are_farthest(
     segs = np.concatenate([line, beads])
     assert _brute_force_within(segs, p, W)[0]
     assert _Below(segs, W).near(p)[0]
+
+
+def test_a_plan_made_in_a_worker_process_reports_what_its_written_program_holds(t_shape, tmp_path, monkeypatch):
+    """The planner's choice for the T is the UR10 alone, planned in the job's
+    worker process (:mod:`ambots.parallel`), which sends back the program's
+    figures and extrusion paths instead of its 7,000 G-code events
+    (``Candidate.__getstate__``; the 60 mm sphere's 116,000 took 0.45 s to
+    send).  job.json holds what the written program holds: its figures and
+    its unsupported extrusion, measured again from the file as read by the
+    parser, equal."""
+    from ambots.config import default_cell_path, load_cell
+    from ambots.gcode import read_gcode, summarize_file
+    from ambots.job import run_job, write_job
+    from ambots.parallel import JOBS_ENV
+    from ambots.slicer import SliceSettings
+    monkeypatch.setenv(JOBS_ENV, "2")
+    job = run_job(str(t_shape), load_cell(default_cell_path()), settings=SliceSettings(support=False))
+    assert job.chosen.arms == ["ur10"] and job.chosen.events is None and set(job.chosen.figures) == {"ur10"}
+    assert job.programs["ur10"].events is None                 # sent without them too
+    summary = write_job(job, str(tmp_path))
+    written = str(tmp_path / "ur10.gcode")
+    figures = summarize_file(written)
+    for key in ("layers", "moves", "extrude_path_mm", "travel_path_mm", "extruded_filament_mm", "print_time_s"):
+        assert summary["arms"]["ur10"][key] == figures[key], key
+    again = unsupported_extrusion([list(read_gcode(written))], layer_height_mm=0.2)
+    assert summary["overhang"]["unsupported_mm"] == again["unsupported_mm"] > 1000
+    assert summary["overhang"]["unsupported_layers"] == again["unsupported_layers"]
+    for key in ("extruded_mm", "bridged_mm", "unsupported_share", "layers"):
+        assert summary["overhang"][key] == again[key], key

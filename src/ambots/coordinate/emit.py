@@ -45,6 +45,12 @@ class ArmProgram:
     def text(self):
         return "\n".join(self.lines) + "\n"
 
+    def __getstate__(self):
+        """Pickled (sent back by a worker process) without :attr:`events`:
+        the plan's :class:`ambots.job.Candidate` sends what the job writes
+        of them, and :meth:`parse` parses the text if they are asked for."""
+        return dict(self.__dict__, events=None)
+
     def parse(self):
         """The program's G-code events (a list, :func:`ambots.gcode.parse_gcode_text`
         of :attr:`text` as ``<arm>.gcode``): parse it once and pass the list on
