@@ -570,8 +570,10 @@ def _group_plans(job, cell, arms, seam, settings, reach, slicer, whole, mode, id
     (:func:`_cooperative`); those within :data:`GROUP_AGAIN_SHARE` of the
     fastest plan so far are then split again by pace (:func:`_rebalanced`),
     as the plan of all.
-    Returns [(None, sliced, programs, Candidate)], without parts (cut again
-    if chosen).  ``timed``: each arm alone, s; ``known``: the makespans of
+    Returns ([(None, sliced, programs, Candidate)], without parts (cut again
+    if chosen, :func:`_to_send`), {group (arm names): the pace its split
+    again was (or would have been) made with, or None}).  ``timed``: each
+    arm alone, s; ``known``: the makespans of
     the plans made so far.  A plan slower than the fastest by more than
     :data:`TIE_SHARE` cannot be chosen: it comes back timed, without
     programs.  One that cannot be made (a part out of an arm's reach) is a
@@ -580,36 +582,55 @@ def _group_plans(job, cell, arms, seam, settings, reach, slicer, whole, mode, id
     groups = _groups(arms)
     best = min([t for t in list(timed) + list(known) if t] or [math.inf])
 
-    def build(spec):                     # (sliced, programs, Candidate, the pace to split it again by)
+    def build(spec):                     # (the plan as sent, the pace to split it again by)
         group, pace, bar = spec
         names = [a.name for a in group]
         rest = idle + [a for a in arms if a.name not in names]
         try:
             plan = _cooperative(job, cell, group, seam, settings, reach, pace, slicer, whole, mode, rest)
         except AmbotsError as exc:       # a part out of an arm's reach, an arm that cannot reach a move
-            return None, None, Candidate(names, mode, None, str(exc)), None
+            return (None, None, Candidate(names, mode, None, str(exc))), None
         c, again = plan[3], _pace_of(plan, group, timed) if pace is None else None
-        if c.makespan_s is None or c.makespan_s > bar:
-            return None, None, replace(c, programs=None, events=None), again
-        return {n: _Text(t) for n, t in plan[1].items()}, plan[2], c, again
+        return _to_send(plan, c.makespan_s is not None and c.makespan_s <= bar), again
 
     made = fork_map(build, [(g, None, best * (1.0 + GROUP_AGAIN_SHARE)) for g in groups])
+    tried = {tuple(a.name for a in g): m[1] for g, m in zip(groups, made)}
+    made = [m[0] for m in made]
     best = min([best] + [m[2].makespan_s for m in made if m[2].makespan_s])
     near = best * (1.0 + GROUP_AGAIN_SHARE)
-    again = [i for i, m in enumerate(made) if m[3] is not None and m[2].makespan_s <= near]
-    for i, m in zip(again, fork_map(build, [(groups[i], made[i][3], best * (1.0 + TIE_SHARE)) for i in again])):
+    again = [i for i, g in enumerate(groups) if tried[tuple(a.name for a in g)] is not None
+             and made[i][2].makespan_s <= near]
+    for i, (m, _) in zip(again, fork_map(build, [(groups[i], tried[tuple(a.name for a in groups[i])],
+                                                  best * (1.0 + TIE_SHARE)) for i in again])):
         if m[2].makespan_s is not None and m[2].makespan_s < made[i][2].makespan_s:
             made[i] = m
     best = min([best] + [m[2].makespan_s for m in made if m[2].makespan_s])
-    out = []
-    for sliced, programs, c, _ in made:
-        if programs is not None and c.makespan_s <= best * (1.0 + TIE_SHARE):
-            sliced = {n: t.text for n, t in sliced.items()}
-            c.programs = _own_arms(programs, cell)
-        else:                            # cannot be chosen: timed, without programs
-            programs, sliced, c = None, None, replace(c, programs=None, events=None)
-        out.append((None, sliced, programs, c))
-    return out
+    # one slower than the fastest by more than the tie share cannot be chosen: timed, without programs
+    return [_received_plan(m if m[2].makespan_s is not None and m[2].makespan_s <= best * (1.0 + TIE_SHARE)
+                           else _to_send((None,) + m, False), cell) for m in made], tried
+
+
+def _to_send(plan, keep=True):
+    """A plan (parts, sliced, programs, Candidate) made in a worker process
+    (:mod:`ambots.parallel`), as it is sent back: (sliced, as :class:`_Text`,
+    programs, Candidate), without parts (a manifold cannot be pickled: the
+    chosen plan's are cut again, :func:`split`); without sliced G-code and
+    programs, (None, None, Candidate), when it cannot be chosen (``keep``
+    False) or has none."""
+    _, sliced, programs, c = plan
+    if not keep or programs is None:
+        return None, None, replace(c, programs=None, events=None)
+    return {n: _Text(t) for n, t in sliced.items()}, programs, c
+
+
+def _received_plan(sent, cell):
+    """:func:`_to_send`'s plan as received: (None, sliced, programs, Candidate),
+    its programs with the cell's own arm objects again."""
+    sliced, programs, c = sent
+    if programs is None:
+        return None, None, None, c
+    c.programs = _own_arms(programs, cell)
+    return None, {n: t.text for n, t in sliced.items()}, programs, c
 
 
 def _cooperative(job, cell, arms, seam, settings, reach, pace, slicer, whole, mode, idle, turn_deg=0.0,
@@ -692,17 +713,9 @@ def _seam_plans(job, cell, arms, seam, settings, reach, pace, slicer, whole, mod
         if c.makespan_s is not None and beat <= c.makespan_s < straight[3].makespan_s:
             c = replace(c, note="within %g %% of the plan with the seam straight, which is kept"
                         % (100 * VARIANT_SHARE))
-        if c.makespan_s is None or c.makespan_s >= beat:
-            return None, None, replace(c, programs=None, events=None)
-        return {n: _Text(t) for n, t in sliced.items()}, programs, c
+        return _to_send((None, sliced, programs, c), c.makespan_s is not None and c.makespan_s < beat)
 
-    out = []
-    for sliced, programs, c in fork_map(variant, specs):
-        if programs is not None:
-            sliced = {n: t.text for n, t in sliced.items()}
-            c.programs = _own_arms(programs, cell)
-        out.append((None, sliced, programs, c))
-    return out
+    return [_received_plan(sent, cell) for sent in fork_map(variant, specs)]
 
 
 def _stepped_offsets(straight, whole, seam, zone):
@@ -777,21 +790,18 @@ def _alone(mesh, cell, arm, text, idle, settings, read, reach=None):
 
 def _alone_plans(mesh, cell, arms, gcode, settings, reach):
     """Each of ``arms`` alone (:func:`_alone`) on the whole model's G-code,
-    read once: [(programs, Candidate, text)] in the order of ``arms``, to be
-    sent back from a worker process (:mod:`ambots.parallel`).  Without parts
-    (a part's manifold cannot be pickled; the chosen plan's are made again
-    by :func:`split`), and with programs, events and the G-code text only
-    for the fastest (the only one of them that can be chosen, see
-    :func:`_best`).  ``gcode()`` returns that G-code (written once), sent
-    back as :class:`_Text` (the job's process need not write it again:
-    0.36 s of the 100 mm sphere's 5.4 s)."""
+    read once, in the order of ``arms``, as sent back from a worker process
+    (:func:`_to_send`), with programs and the G-code text only for the
+    fastest (the only one of them that can be chosen, see :func:`_best`).
+    ``gcode()`` returns that G-code (written once), sent back as
+    :class:`_Text` (the job's process need not write it again: 0.36 s of
+    the 100 mm sphere's 5.4 s)."""
     text = gcode()
     read = {}
     plans = [_alone(mesh, cell, arm, text, [a for a in cell.arms if a.name != arm.name], settings, read, reach)
              for arm in arms]
     best = _best([p[3] for p in plans])
-    return [(programs, c, _Text(text)) if i == best else (None, replace(c, programs=None, events=None), None)
-            for i, (_, _, programs, c) in enumerate(plans)]
+    return [_to_send(p, i == best) for i, p in enumerate(plans)]
 
 
 class _Text:
@@ -805,19 +815,6 @@ class _Text:
 
     def __reduce__(self):
         return _Text, (str(self.text),)
-
-
-def _received(alone, cell):
-    """:func:`_alone_plans`' result as plans (parts, sliced, programs,
-    Candidate); the sliced text only for the one with programs."""
-    out = []
-    for programs, c, text in alone:
-        sliced = None
-        if programs is not None:
-            sliced = {c.arms[0]: text.text}
-            _own_arms(programs, cell)
-        out.append((None, sliced, programs, c))
-    return out
 
 
 @fewer_collections
@@ -916,23 +913,27 @@ def _plan_job(mesh, model_path, cell, arms, slicer, mode, seam, settings, choose
             if background is not None:
                 background.cancel()
             raise
-        alone = _received(background.result(), cell) if background else []
+        alone = [_received_plan(p, cell) for p in background.result()] if background else []
         timed = [p[3].makespan_s for p in alone if p[3].makespan_s]
         plan, pace = _rebalanced(job, cell, arms, seam, settings, reach, slicer, whole, mode, idle, plan, timed)
         plans.append(plan)
+        tried = {tuple(a.name for a in arms): pace}       # each plan's pace split again by (or None)
         if choose:
-            plans += _group_plans(job, cell, arms, seam, settings, reach, slicer, whole, mode, idle, timed,
-                                  [plan[3].makespan_s])
+            groups, paces = _group_plans(job, cell, arms, seam, settings, reach, slicer, whole, mode, idle, timed,
+                                         [plan[3].makespan_s])
+            plans += groups
+            tried.update(paces)
         pairs = [p for p in plans if len(p[3].arms) == 2 and p[2] is not None and _pays(p, timed)]
         if pairs and not is_beam(cell):  # the fastest plan of two arms that pays, with its seam turned or stepped
             pair = min(pairs, key=lambda p: p[3].makespan_s)
             group = [cell.arm(n) for n in pair[3].arms]
+            # the turned seams split with the pace its busy times gave, whether or not that split was kept
+            rates = tried.get(tuple(pair[3].arms))
             rest = idle + [a for a in arms if a.name not in pair[3].arms]
             if pair[0] is None:          # made in a worker: its parts cut again (the stepped seam needs them)
                 c = pair[3]
                 pair = (split(job.mesh, cell, group, seam, settings, reach, c.pace),) + tuple(pair[1:])
-            plans += _seam_plans(job, cell, group, seam, settings, reach, pace if pair is plan else pair[3].pace,
-                                 slicer, whole, mode, rest, pair)
+            plans += _seam_plans(job, cell, group, seam, settings, reach, rates, slicer, whole, mode, rest, pair)
         plans += alone
     if len(arms) == 1:                   # one arm: its plan (an arm that cannot reach the model is an error)
         parts = split(job.mesh, cell, arms, seam, settings)

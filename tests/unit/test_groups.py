@@ -84,3 +84,45 @@ def test_the_group_chosen_finishes_sooner_executed_and_touches_nothing(four, job
     all_four = simulate(forced.programs, four)
     assert all_four.finished, all_four.reason
     assert result.makespan_s * (1.0 + TIE_SHARE) < all_four.makespan_s
+
+
+def test_the_fastest_pair_turns_its_seam_with_the_pace_of_its_own_busy_times(tmp_path, monkeypatch):
+    """The pair that gets the seam variants (turned, stepped) splits them
+    with each arm's pace from its own plan by volume, as the plan of all the
+    cell's arms does, whether or not its split again was kept.  Here every
+    split again is made slower by 1,000 s, so none is kept: before session
+    34 a group's variants then got no pace at all.  The pace is found again
+    from the pair's plan with the arms given (``--arms``: by volume, not split
+    again): each arm's busy time over their mean, rounded."""
+    import ambots.job
+    from ambots.job import PACE_DIGITS
+    three = load_cell(data_path("config", "cells", "three_arms.yaml"))
+    path = str(tmp_path / "block_240x40.stl")
+    trimesh.creation.box((240.0, 40.0, 1.2)).apply_translation((0.0, 0.0, 0.6)).export(path)
+    real_cooperative, real_seams = ambots.job._cooperative, ambots.job._seam_plans
+    calls = []
+
+    def slower_again(job, cell, arms, seam, settings, reach, pace, *rest, **kw):
+        plan = real_cooperative(job, cell, arms, seam, settings, reach, pace, *rest, **kw)
+        if pace is None or len(rest) > 5:          # split by volume, or a seam variant: as it is
+            return plan
+        c = plan[3]
+        return plan[:3] + (ambots.job.replace(c, makespan_s=c.makespan_s + 1000.0),)
+
+    def spy(job, cell, arms, seam, settings, reach, pace, *rest):
+        calls.append(([a.name for a in arms], pace))
+        return real_seams(job, cell, arms, seam, settings, reach, pace, *rest)
+
+    monkeypatch.setattr(ambots.job, "_cooperative", slower_again)
+    monkeypatch.setattr(ambots.job, "_seam_plans", spy)
+    job = run_job(path, three)
+    assert len(calls) == 1
+    names, pace = calls[0]
+    pair = next(c for c in job.candidates if c.arms == names and c.seam_turn_deg == 0 and c.seam_offsets is None)
+    assert pair.pace is None                        # the plan kept is the one by volume ...
+    monkeypatch.setattr(ambots.job, "_cooperative", real_cooperative)
+    given = run_job(path, three, [three.arm(n) for n in names]).chosen
+    assert given.pace is None and given.makespan_s == pytest.approx(pair.makespan_s, rel=1e-9)
+    busy = given.busy_s
+    mean = sum(busy.values()) / len(busy)
+    assert pace == {n: round(b / mean, PACE_DIGITS) for n, b in busy.items()}      # ... its variants the pace
