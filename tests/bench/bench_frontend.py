@@ -16,7 +16,10 @@ extrusion in mid-air, :mod:`ambots.overhang`); the same with the arms given
 one process (``AMBOTS_JOBS=1``).  The first three run :data:`ROUNDS` times,
 interleaved, and each figure is the fastest of its rounds (all printed):
 one run each swung from 0.98x to 1.34x in three runs of session 34 on an
-idle machine.  Before session 21 only ``run_job`` was
+idle machine.  The job is timed in this process, as the menu and the front
+end node run it (their imports and the arms' kinematics made once); what a
+user types, ``python -m ambots slice`` in a new process, is timed beside
+it, as prusa-slicer is.  Before session 21 only ``run_job`` was
 timed: ``write_job`` then took 9.8 s more on this model (the mid-air check
 alone 9.4 s), which the benchmark did not show.
 
@@ -26,6 +29,8 @@ process's and its workers'), since on a shared,
 loaded machine the wall times of one run can differ by 2x from the next
 while the CPU seconds stay within a few per cent."""
 import os
+import subprocess
+import sys
 import tempfile
 import time
 
@@ -69,7 +74,7 @@ def main():
     jobs = os.environ.get(JOBS_ENV)
     cell = load_cell(default_cell_path())
     mesh = place_on_bed(trimesh.creation.icosphere(subdivisions=7, radius=30.0))
-    runs = {"prusa": [], "chosen": [], "forced": []}        # (wall s, CPU s, run_job s, write_job s)
+    runs = {"prusa": [], "chosen": [], "forced": [], "cli": []}   # (wall s, CPU s, run_job s, write_job s)
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "sphere60.stl")
         mesh.export(path)
@@ -84,6 +89,11 @@ def main():
                 runs[key].append((plan + write, _cpu() - c, plan, write))
                 if key == "chosen":
                     chosen_arms = "+".join(job.chosen.arms)
+            # what a user types, in a new process: the interpreter, the imports, the arms' URDFs (xacro)
+            t, c = time.perf_counter(), _children_cpu()
+            subprocess.run([sys.executable, "-m", "ambots", "slice", path, "--out", out], check=True,
+                           stdout=subprocess.DEVNULL)
+            runs["cli"].append((time.perf_counter() - t, _children_cpu() - c, 0.0, 0.0))
         os.environ[JOBS_ENV] = "1"              # the same job in one process, for the workers' share
         try:
             c = _cpu()
@@ -103,6 +113,9 @@ def main():
           % (len(mesh.faces), ROUNDS, prusa, walls("prusa"), chosen[0], chosen[2], chosen[3], chosen_arms,
              walls("chosen"), chosen[0] / prusa, forced[0], forced[2], forced[3], walls("forced"),
              forced[0] / prusa), flush=True)
+    print("   `python -m ambots slice` (a new process: interpreter, imports, xacro; the planner's choice) %.1f s "
+          "(%s) = %.2fx, CPU %.1f s" % (best["cli"][0], walls("cli"), best["cli"][0] / prusa,
+                                         min(r[1] for r in runs["cli"])), flush=True)
     print("   the job with the choice in one process (%s=1): %.1f s (%.1f + %.1f s) = %.2fx, CPU %.1f s; with %d "
           "worker processes: %.1f s" % (JOBS_ENV, single, single_plan, single_write, single / prusa, single_cpu,
                                         workers(), chosen[0]), flush=True)
