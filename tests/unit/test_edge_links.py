@@ -253,6 +253,19 @@ def test_no_link_along_a_perimeter_without_features_or_across_a_wall(cut_at_ever
     assert _links(bands[0]) == [(-1.0, 1.0)] and not _links(bands[1])
 
 
+def test_a_wall_leaves_out_only_the_link_it_crosses_among_a_bands_links(cut_at_every_crossing):
+    """A band with two links (all of a band's links are tested against the
+    layer's walls at once): a wall across the second leaves the first."""
+    longer = ZIGZAG + [(20.0, 5.0), (8.0, -7.0)]          # a fourth line, crossing the edge at y = -5
+    bands = _banded(_layer([("Internal infill", longer)]))
+    assert _links(bands[0]) == [(-5.0, -3.0), (-1.0, 1.0)]
+    assert _links(bands[1]) == [(-3.0, -1.0)]
+    wall = [("Perimeter", [(9.0, -4.0), (11.0, -4.0)])]   # across the edge between y = -5 and -3
+    bands = _banded(_layer([("Internal infill", longer)] + wall))
+    assert _links(bands[0]) == [(-1.0, 1.0)]
+    assert _links(bands[1]) == [(-3.0, -1.0)]
+
+
 def _chunked(read, bands=2, zone=20.0):
     """The chunks of one arm's layer by the scheduled timeline
     (``timeline._chunks``) on the side x >= 0 of a seam x = 0 whose zone is

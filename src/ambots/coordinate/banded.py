@@ -7,7 +7,7 @@ import numpy as np
 
 from ambots.coordinate.bands import _phase_of, band_stats, choose_bands
 from ambots.coordinate.emit import ArmProgram, Emitter, resolve_waits
-from ambots.coordinate.links import edge_links
+from ambots.coordinate.links import LayerWalls, edge_links
 from ambots.coordinate.parking import APPROACH_MM, lift_height
 from ambots.coordinate.steps import END, Step, Wait, _order_runs, close, cut_segment
 from ambots.coordinate.zones import distance_to_planes, planes_at
@@ -201,7 +201,8 @@ def _phases(arms, segs_by, planes, bounds, k, colour, n_layers, lo=None, feature
                 by_src[b].append(i)
             if len(bounds[a.name]) > 1 and here:
                 edges = [bounds[a.name][1:]] * len(here)
-                by_band = [edge_links(layer_segs, pieces, idx, here, edges, features.get(a.name))
+                walls = LayerWalls(layer_segs)
+                by_band = [edge_links(layer_segs, pieces, idx, here, edges, features.get(a.name), walls)
                            for pieces, idx in zip(by_band, by_src)]
             for b in range(k):
                 phases[a.name, layer, _phase_of(b, colour[a.name], layer, k)] = (b, by_band[b])

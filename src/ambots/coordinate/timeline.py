@@ -10,7 +10,7 @@ import bisect
 import numpy as np
 
 from ambots.coordinate.emit import ArmProgram, Emitter, resolve_waits
-from ambots.coordinate.links import edge_links
+from ambots.coordinate.links import LayerWalls, edge_links
 from ambots.coordinate.lookahead import layer_orders
 from ambots.coordinate.schedule import Schedule
 from ambots.coordinate.steps import Step, Wait, close, cut_segment
@@ -212,8 +212,9 @@ def _chunks(seams, read, n_layers, bands):
                     groups[key][0].append(p)
                     groups[key][1].append(i)
             out = []
+            walls = LayerWalls(layer_segs)
             for key in sorted(groups):
-                ps = edge_links(layer_segs, groups[key][0], groups[key][1], planes, edges, features)
+                ps = edge_links(layer_segs, groups[key][0], groups[key][1], planes, edges, features, walls)
                 pts = np.array([p.start for p in ps] + [p.end for p in ps], dtype=float)
                 dmin = seams.dist(n, pts).min(axis=0) if len(seams.N[n]) else np.zeros(0)
                 level = min([k for k, u in zip(key, useful) if u] or [bands])
