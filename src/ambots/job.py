@@ -593,21 +593,19 @@ def _group_plans(job, cell, arms, seam, settings, reach, slicer, whole, mode, id
         c, again = plan[3], _pace_of(plan, group, timed) if pace is None else None
         return _to_send(plan, c.makespan_s is not None and c.makespan_s <= bar), again
 
-    made = fork_map(build, [(g, None, best * (1.0 + GROUP_AGAIN_SHARE)) for g in groups])
-    tried = {tuple(a.name for a in g): m[1] for g, m in zip(groups, made)}
-    made = [m[0] for m in made]
+    first = fork_map(build, [(g, None, best * (1.0 + GROUP_AGAIN_SHARE)) for g in groups])
+    made, paces = [m for m, _ in first], [p for _, p in first]
     best = min([best] + [m[2].makespan_s for m in made if m[2].makespan_s])
     near = best * (1.0 + GROUP_AGAIN_SHARE)
-    again = [i for i, g in enumerate(groups) if tried[tuple(a.name for a in g)] is not None
-             and made[i][2].makespan_s <= near]
-    for i, (m, _) in zip(again, fork_map(build, [(groups[i], tried[tuple(a.name for a in groups[i])],
-                                                  best * (1.0 + TIE_SHARE)) for i in again])):
+    again = [i for i, m in enumerate(made) if paces[i] is not None and m[2].makespan_s <= near]
+    for i, (m, _) in zip(again, fork_map(build, [(groups[i], paces[i], best * (1.0 + TIE_SHARE)) for i in again])):
         if m[2].makespan_s is not None and m[2].makespan_s < made[i][2].makespan_s:
             made[i] = m
     best = min([best] + [m[2].makespan_s for m in made if m[2].makespan_s])
     # one slower than the fastest by more than the tie share cannot be chosen: timed, without programs
-    return [_received_plan(m if m[2].makespan_s is not None and m[2].makespan_s <= best * (1.0 + TIE_SHARE)
-                           else _to_send((None,) + m, False), cell) for m in made], tried
+    return ([_received_plan(m if m[2].makespan_s is not None and m[2].makespan_s <= best * (1.0 + TIE_SHARE)
+                            else _to_send((None,) + m, False), cell) for m in made],
+            {tuple(a.name for a in g): p for g, p in zip(groups, paces)})
 
 
 def _to_send(plan, keep=True):
