@@ -156,11 +156,12 @@ def test_links_lie_on_an_edge_between_infill_lines_and_add_only_themselves(plans
 
 
 def test_links_save_time_and_retractions(cell, plans):
-    """By the one timing law the linked programs take less time; they
-    retract less (a link replaces a retracted travel)."""
+    """By the one timing law, every move planned, the linked programs take
+    less time (about 0.1 % here: less than the sampled estimate's own error,
+    so not that); they retract less (a link replaces a retracted travel)."""
     job, bare = plans
-    fast = estimate_programs(job.programs, cell)
-    slow = estimate_programs(bare.programs, cell)
+    fast = estimate_programs(job.programs, cell, sample_moves=10 ** 9)
+    slow = estimate_programs(bare.programs, cell, sample_moves=10 ** 9)
     assert fast["makespan_s"] < slow["makespan_s"]
     for name in job.programs:
         assert fast["arms"][name]["busy_s"] < slow["arms"][name]["busy_s"]

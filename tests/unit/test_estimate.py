@@ -68,6 +68,42 @@ def test_a_program_planned_whole_takes_the_runners_time_and_a_sample_stays_close
     assert "line 6" in line_durations(far, arm, cell, "far.gcode").error
 
 
+def mixed_layers(per_layer=300):
+    """Eight layers of one run each, four kinds of path in turn: a circle of
+    short chords, a zigzag of 2 mm legs, 80 mm infill lines, a square
+    spiral of growing legs."""
+    lines = ["G21", "G90", "M83"]
+    k = np.arange(per_layer + 1)
+    for layer in range(8):
+        z = 0.2 * (layer + 1)
+        if layer % 4 == 0:
+            a = np.linspace(0.0, 2.0 * np.pi, per_layer + 1)
+            pts = np.c_[40.0 * np.cos(a), 40.0 * np.sin(a)]
+        elif layer % 4 == 1:
+            pts = np.c_[-60.0 + 0.4 * k, np.where(k % 2, 1.0, -1.0)]
+        elif layer % 4 == 2:
+            pts = np.c_[np.where(k % 2, 40.0, -40.0), -30.0 + 0.2 * k]
+        else:
+            legs = np.array([[1, 0], [0, 1], [-1, 0], [0, -1]])[k[:-1] % 4] * (0.5 + 0.25 * k[:-1, None])
+            pts = 0.6 * np.vstack([[0.0, 0.0], np.cumsum(legs, axis=0)])
+        lines += [";LAYER_CHANGE", ";Z:%.1f" % z, "G0 X%.3f Y%.3f Z%.1f F9000" % (pts[0, 0], pts[0, 1], z)]
+        lines += ["G1 X%.3f Y%.3f E0.05 F2400" % (x, y) for x, y in pts[1:]]
+    return "\n".join(lines) + "\n"
+
+
+def test_a_sample_of_a_quarter_of_the_moves_times_layers_unlike_each_other_within_one_percent(cell):
+    """Each layer is one run and no two neighbours are alike: the sample
+    must see every kind of path, not a few whole runs (a sample of the
+    first run and whole runs spread over the program was 12.5 % over
+    here).  Against every move planned by the firmware's planner."""
+    arm = cell.arm("ur10")
+    text = mixed_layers()
+    full = line_durations(text, arm, cell, sample_moves=10 ** 9)
+    sampled = line_durations(text, arm, cell, sample_moves=600)
+    assert sampled.planned_moves <= full.moves // 4
+    assert sampled.total_s == pytest.approx(full.total_s, rel=0.01)
+
+
 class _Arm:
     def __init__(self, name, id_):
         self.name, self.id = name, id_
