@@ -178,7 +178,7 @@ class Job:
                "one_arm_estimate_s": self.one_arm_estimate_s, "plan": self.plan_summary(), "arms": {}}
         built = self._built()
         timeline = (built.timeline if built is not None else None) or {}
-        figures = (built.figures if built is not None else None) or {}
+        figures = self._figures()
         out["overhang"] = self.overhang()
         out["repair"] = self.repair()
         out["seams"] = self.seam_setup()
@@ -228,6 +228,13 @@ class Job:
         chosen = self.chosen
         return chosen if chosen is not None and chosen.programs is self.programs else None
 
+    def _figures(self):
+        """{arm name: (summary, extrusion paths)} of the chosen plan's
+        programs when a worker process sent it (:attr:`Candidate.figures`),
+        else {}."""
+        built = self._built()
+        return (built.figures if built is not None else None) or {}
+
     def events(self):
         """{arm name: G-code events of its program}: the parse that timed the
         chosen plan, else parsed now (once: kept)."""
@@ -249,8 +256,7 @@ class Job:
             from ambots.overhang import unsupported_extrusion
             from ambots.slicer import SliceSettings
             settings = self.settings or SliceSettings()
-            built = self._built()
-            figures = (built.figures if built is not None else None) or {}
+            figures = self._figures()
             if all(n in figures for n in self.programs):    # sent by a worker: its paths, not its events
                 programs, paths = (), [p for n in self.programs for p in figures[n][1]]
             else:
