@@ -257,10 +257,10 @@ def _plan_sample(planner, home, segs, sizes, lines, sample_moves):
                                 n / count / (b - a)))
     q = home
     for a, b, lo, hi, weight in windows:
-        if lo != 0:                     # start where the planned moves start (not counted)
-            lead = planner.joint_move_to(planner.bed_mm_to_base(np.array([segs[lo].start]))[0], q)
-            if lead.error is None:
-                q = lead.Q[-1]
+        if lo != 0:                     # the joints where the planned moves start (no move there: not counted)
+            there = planner.joints_at(planner.bed_mm_to_base(np.array([segs[lo].start]))[0], q)[0]
+            if there is not None:
+                q = there
         block = planner.plan_moves(segs[lo:hi], q)
         yield a, b, weight, block
         if block.error is not None:

@@ -477,16 +477,23 @@ class MotionPlanner:
         return self._timed(self._joint_move_to(target_base, q0, line, layer,
                                                seed=np.asarray(self.arm.profile.home, dtype=float)))
 
-    def _joint_move_to(self, target_base, q0, line=0, layer=0, seed=None):
+    def joints_at(self, target_base, q0, seed=None):
+        """(joints, None) that put the nozzle at ``target_base`` (3,) base-frame
+        m pointing down, by IK from ``seed`` then ``q0`` (no seed: from ``q0``
+        then the home pose), or (None, why) when neither reaches it."""
         q0 = np.asarray(q0, dtype=float)
         seeds = [q0, np.asarray(self.arm.profile.home, dtype=float)] if seed is None else [seed, q0]
-        q1, why = None, None
+        why = None
         for s in seeds:
             try:
-                q1 = self.kin.ik(target_base, s, self.down)
-                break
+                return self.kin.ik(target_base, s, self.down), None
             except UnreachableError as exc:
                 why = why or exc
+        return None, why
+
+    def _joint_move_to(self, target_base, q0, line=0, layer=0, seed=None):
+        q0 = np.asarray(q0, dtype=float)
+        q1, why = self.joints_at(target_base, q0, seed)
         if q1 is None:
             return self._still(q0, line, layer, MotionError(line, "unreachable: %s" % why))
         return self._joint_path(q0, q1, line, layer)
