@@ -267,15 +267,16 @@ def test_a_wall_leaves_out_only_the_link_it_crosses_among_a_bands_links(cut_at_e
     assert _links(bands[1]) == [(-3.0, -1.0)]
 
 
-def _chunked(read, bands=2, zone=20.0):
+def _chunked(read, bands=2, zone=20.0, links=True):
     """The chunks of one arm's layer by the scheduled timeline
     (``timeline._chunks``) on the side x >= 0 of a seam x = 0 whose zone is
-    ``zone`` mm: ``bands`` chunk bands, edges every zone / bands mm."""
+    ``zone`` mm: ``bands`` chunk bands, edges every zone / bands mm;
+    ``links``: the infill linked along the chunk edges or as cut."""
     from ambots.coordinate import timeline
     N, O = np.array([[1.0, 0.0, 0.0]]), np.array([0.0])
     seams = SimpleNamespace(names=["a"], useful={"a": np.array([True])}, Z={"a": np.array([zone])},
                             N={"a": N}, O={"a": O}, dist=lambda n, pts: np.asarray(pts, float).reshape(-1, 3) @ N.T - O)
-    return timeline._chunks(seams, {"a": read}, 1, bands)[("a", 0)]
+    return timeline._chunks(seams, {"a": read}, 1, bands, links)[("a", 0)]
 
 
 def test_the_scheduled_timeline_links_its_chunks_along_their_edges(cut_at_every_crossing):
@@ -294,3 +295,20 @@ def test_the_scheduled_timeline_links_its_chunks_along_their_edges(cut_at_every_
     # a perimeter (or no features known) is never linked: each line a run of its own
     for read in (_layer([("Perimeter", ZIGZAG)]), _layer([("Internal infill", ZIGZAG)], typed=False)):
         assert not any(_links(pieces) for pieces, _, _ in _chunked(read))
+
+
+def test_the_timeline_chunks_as_cut_keep_each_line_a_run_of_its_own(cut_at_every_crossing):
+    """The other kind of chunks the timeline schedules (``links=False``):
+    the same pieces without the links, so the zig-zag cut at the chunk edge
+    is two runs in each chunk (one when linked: the lines joined at the
+    outline on the chunk's side stay joined), and the footprints are the
+    linked chunks' (a link lies between two ends of pieces on the edge)."""
+    read = _layer([("Internal infill", ZIGZAG)])
+    linked, cut = _chunked(read), _chunked(read, links=False)
+    runs = lambda ps: 1 + sum(p.end != q.start for p, q in zip(ps, ps[1:]))
+    assert [runs(ps) for ps, _, _ in cut] == [2, 2] and [runs(ps) for ps, _, _ in linked] == [1, 1]
+    assert not any(_links(ps) for ps, _, _ in cut)
+    for (ps_l, d_l, level_l), (ps_c, d_c, level_c) in zip(linked, cut):
+        assert [p for p in ps_l if not _links([p])] == ps_c
+        assert d_l.tolist() == d_c.tolist() and level_l == level_c
+

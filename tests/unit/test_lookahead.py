@@ -114,6 +114,34 @@ def test_the_look_ahead_timeline_keeps_every_pair_a_zone_apart_whatever_the_timi
     assert_zones_kept(programs, cell, arms, planes, zones, adjacent, seed)
 
 
+def test_the_timeline_keeps_the_shorter_of_its_chunks_linked_and_as_cut(corners):
+    """The chunks' infill linked along their edges (fewer starts from rest)
+    and as cut (each line a run the schedule can take in its own order):
+    the timeline schedules both, keeps the shorter by its own estimate, and
+    says which in the programs' header; each kind alone is the timeline of
+    that kind."""
+    from ambots.coordinate import timeline
+    cell, arms, read, planes, zones, adjacent, n_layers = corners
+    args = (arms, read, park_positions_mm(cell, arms), home_positions_mm(cell, arms), n_layers, planes, zones,
+            adjacent)
+    span, header = {}, {}
+    for links in ((True,), (False,), None):
+        programs = timeline_programs(*args, bands=1, moves=JointMoves(cell, arms), links=links)
+        span[links] = max(a[-1].C for a in timeline._last_schedule.values() if a)
+        header[links] = {p.lines[2].rsplit(", ", 1)[1] for p in programs.values()}
+    assert header[(True,)] == {"infill linked along chunk edges"}
+    assert header[(False,)] == {"infill not linked along chunk edges"}
+    assert span[(True,)] != span[(False,)]               # the two kinds are different schedules
+    assert span[None] == min(span[(True,)], span[(False,)])
+    assert header[None] == header[(True,) if span[(True,)] <= span[(False,)] else (False,)]
+    seams = Seams(arms, read, planes, zones, adjacent)
+    linked, cut = (_chunks(seams, read, n_layers, 1, links) for links in (True, False))
+    assert sum(len(ps) for cs in linked.values() for ps, _, _ in cs) > sum(len(ps) for cs in cut.values()
+                                                                        for ps, _, _ in cs)
+    with pytest.raises(ValueError, match="links"):
+        timeline_programs(*args, links=("both",))
+
+
 def test_unknown_schedules_are_refused(corners):
     cell, arms, read, planes, zones, adjacent, n_layers = corners
     with pytest.raises(ValueError, match="lookahead"):

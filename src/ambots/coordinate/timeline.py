@@ -33,9 +33,18 @@ ROUNDING_MM = 0.001
 #: look-ahead order (:func:`~ambots.coordinate.lookahead.layer_orders`)
 SCHEDULES = ("priority", "greedy", "lookahead")
 
+#: the chunks' infill linked along their edges (:func:`~ambots.coordinate.links.edge_links`)
+#: and not: :func:`timeline_programs` schedules both and keeps the shorter.  A link
+#: saves a start from rest, but a linked run is printed whole, in one direction:
+#: the schedule can no longer take its lines in another order (session 36, the
+#: four-arm 300 mm plate, one chunk band: its schedule 14,808 s linked against
+#: 14,178 s not, 16,641 s against 16,119 s by the one timing law; the 276 mm hex
+#: plate gained by the links, 12,495 -> 12,211 s, session 33)
+LINKS = (True, False)
+
 
 def timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4, kinds=SCHEDULES,
-                      moves=None, opening=None):
+                      moves=None, opening=None, links=None):
     """Any adjacency (an odd cycle of adjacent arms: three or more around a point).
 
     Each arm's layer is cut into *chunks*: pieces of its extrusions grouped
@@ -60,8 +69,10 @@ def timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent,
     sweeps away from their seam and this one follows), without, and in the
     look-ahead order (each layer's chunks ordered by a search over the
     layer as a scheduling problem, :mod:`~ambots.coordinate.lookahead`;
-    a chunk then ends at its point clearest of the seams); the shortest
-    (by its own estimated durations) is kept, the first on a tie.
+    a chunk then ends at its point clearest of the seams), each of them
+    with the chunks' infill linked along their edges and not (``links``,
+    default :data:`LINKS`); the shortest (by its own estimated durations)
+    is kept, the first on a tie.
 
     The order becomes barriers (:func:`_barriers`): before each step an
     arm waits, for every adjacent arm, for the last of that arm's steps
@@ -74,24 +85,29 @@ def timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent,
     they cannot form a cycle.  ``opening``: {arm: [messages]} its program
     sends before anything else (A7 to the cell's idle arms)."""
     global _last_schedule
-    seams = Seams(arms, read, planes, zones, adjacent, moves)
-    chunks = _chunks(seams, read, n_layers, bands)
+    links = LINKS if links is None else tuple(links)
     unknown = set(kinds) - set(SCHEDULES)
     if unknown or not kinds:
         raise ValueError("timeline_programs: kinds must be some of %s, got %r" % (", ".join(SCHEDULES), kinds))
-    made = {"priority": lambda: Schedule(seams, chunks, home, park, n_layers, True),
-            "greedy": lambda: Schedule(seams, chunks, home, park, n_layers, False),
-            "lookahead": lambda: Schedule(seams, chunks, home, park, n_layers, False,
-                                          order=layer_orders(seams, chunks, n_layers)[0])}
-    acts = min((made[k]().run() for k in SCHEDULES if k in kinds),
-               key=lambda acts: max((a[-1].C for a in acts.values() if a), default=0.0))
+    if not links or set(links) - set(LINKS):
+        raise ValueError("timeline_programs: links must be some of %s, got %r" % (LINKS, links))
+    seams = Seams(arms, read, planes, zones, adjacent, moves)
+    variants = _chunk_variants(seams, read, n_layers, bands, links)
+
+    def made(kind, chunks):
+        order = layer_orders(seams, chunks, n_layers)[0] if kind == "lookahead" else None
+        return Schedule(seams, chunks, home, park, n_layers, kind == "priority", order=order).run()
+
+    linked, acts = min(((link, made(k, variants[link])) for link in links for k in SCHEDULES if k in kinds),
+                       key=lambda r: max((a[-1].C for a in r[1].values() if a), default=0.0))
     _last_schedule = acts
     arm_of = {a.name: a for a in arms}
     _barriers(acts, seams, arm_of)
     emitters = {}
     for n in seams.names:
-        extra = ["; seam zones %s mm, %d chunk band(s) per seam, scheduled"
-                 % (", ".join("%s %.1f" % (b, zones[n, b]) for b in seams.nbrs[n]) or "-", bands)]
+        extra = ["; seam zones %s mm, %d chunk band(s) per seam, scheduled, infill %s along chunk edges"
+                 % (", ".join("%s %.1f" % (b, zones[n, b]) for b in seams.nbrs[n]) or "-", bands,
+                    "linked" if linked else "not linked")]
         first = [Step(directives=list(opening[n]))] if (opening or {}).get(n) else []
         emitters[n] = Emitter(arm_of[n], "concurrent", extra).steps(first + _steps(acts[n], seams.names, park[n],
                                                                                    n_layers))
@@ -177,8 +193,15 @@ def _split_at(seg, N, O, W, bands):
     return cut_segment(seg, cuts)
 
 
-def _chunks(seams, read, n_layers, bands):
-    """{(arm, layer): [(pieces, closest distance to each plane (P,), level)]}:
+def _chunks(seams, read, n_layers, bands, links=True):
+    """:func:`_chunk_variants` of one kind (``links``: the infill linked
+    along the chunks' edges, or as cut)."""
+    return _chunk_variants(seams, read, n_layers, bands, (links,))[links]
+
+
+def _chunk_variants(seams, read, n_layers, bands, links=LINKS):
+    """{link: {(arm, layer): [(pieces, closest distance to each plane (P,), level)]}}
+    for each of ``links`` (True: linked along the chunks' edges; False: as cut):
     the arm's extrusions on the layer cut into pieces and grouped by band
     (width zone / ``bands``) of distance to each useful plane, all pieces
     beyond the zone in one band; ``level``: the nearest band to a seam.  A
@@ -186,8 +209,9 @@ def _chunks(seams, read, n_layers, bands):
     the chunk across a band edge and came back across the same edge
     (:func:`~ambots.coordinate.links.edge_links`: without, each line of a
     zig-zag cut at an edge is a run of its own, with a retracted travel to
-    the next)."""
-    chunks = {}
+    the next).  A link lies on a chunk edge between two ends of its
+    pieces: the closest distances are the pieces' either way."""
+    out = {link: {} for link in links}
     for n in seams.names:
         useful = seams.useful[n]
         W = np.where(useful, seams.Z[n] / bands, np.inf)
@@ -211,16 +235,18 @@ def _chunks(seams, read, n_layers, bands):
                     groups.setdefault(key, ([], []))
                     groups[key][0].append(p)
                     groups[key][1].append(i)
-            out = []
-            walls = LayerWalls(layer_segs)
+            walls = LayerWalls(layer_segs) if True in links else None
+            for link in links:
+                out[link][n, layer] = []
             for key in sorted(groups):
-                ps = edge_links(layer_segs, groups[key][0], groups[key][1], planes, edges, features, walls)
-                pts = np.array([p.start for p in ps] + [p.end for p in ps], dtype=float)
+                cut = groups[key][0]
+                pts = np.array([p.start for p in cut] + [p.end for p in cut], dtype=float)
                 dmin = seams.dist(n, pts).min(axis=0) if len(seams.N[n]) else np.zeros(0)
                 level = min([k for k, u in zip(key, useful) if u] or [bands])
-                out.append((ps, dmin, level))
-            chunks[n, layer] = out
-    return chunks
+                for link in links:
+                    ps = edge_links(layer_segs, cut, groups[key][1], planes, edges, features, walls) if link else cut
+                    out[link][n, layer].append((ps, dmin, level))
+    return out
 
 
 def _barriers(acts, seams, arm_of):
