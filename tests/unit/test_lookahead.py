@@ -117,9 +117,9 @@ def test_the_look_ahead_timeline_keeps_every_pair_a_zone_apart_whatever_the_timi
 def test_the_timeline_keeps_the_shorter_of_its_chunks_linked_and_as_cut(corners):
     """The chunks' infill linked along their edges (fewer starts from rest)
     and as cut (each line a run the schedule can take in its own order):
-    the timeline schedules both, keeps the shorter by its own estimate, and
-    says which in the programs' header; each kind alone is the timeline of
-    that kind."""
+    the timeline schedules both (the chunks as cut in the look-ahead order
+    only), keeps the shorter by its own estimate, and says which in the
+    programs' header; each kind alone is the timeline of that kind."""
     from ambots.coordinate import timeline
     cell, arms, read, planes, zones, adjacent, n_layers = corners
     args = (arms, read, park_positions_mm(cell, arms), home_positions_mm(cell, arms), n_layers, planes, zones,
@@ -140,6 +140,8 @@ def test_the_timeline_keeps_the_shorter_of_its_chunks_linked_and_as_cut(corners)
                                                                         for ps, _, _ in cs)
     with pytest.raises(ValueError, match="links"):
         timeline_programs(*args, links=("both",))
+    with pytest.raises(ValueError, match="as cut"):                 # only the look-ahead order
+        timeline_programs(*args, links=(False,), kinds=("greedy",))
 
 
 def test_unknown_schedules_are_refused(corners):

@@ -42,6 +42,12 @@ SCHEDULES = ("priority", "greedy", "lookahead")
 #: plate gained by the links, 12,495 -> 12,211 s, session 33)
 LINKS = (True, False)
 
+#: the schedules made of the chunks as cut: the look-ahead order, whose chunks
+#: end at their point clearest of the seams, any line's end (the greedy and
+#: priority schedules were never shorter with them: the four-arm 300 mm plate,
+#: 1-4 chunk bands, session 36)
+CUT_SCHEDULES = ("lookahead",)
+
 
 def timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent, bands=4, kinds=SCHEDULES,
                       moves=None, opening=None, links=None):
@@ -69,9 +75,10 @@ def timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent,
     sweeps away from their seam and this one follows), without, and in the
     look-ahead order (each layer's chunks ordered by a search over the
     layer as a scheduling problem, :mod:`~ambots.coordinate.lookahead`;
-    a chunk then ends at its point clearest of the seams), each of them
-    with the chunks' infill linked along their edges and not (``links``,
-    default :data:`LINKS`); the shortest (by its own estimated durations)
+    a chunk then ends at its point clearest of the seams), with the chunks'
+    infill linked along their edges, and the look-ahead one also with the
+    chunks as cut (``links``, default :data:`LINKS`;
+    :data:`CUT_SCHEDULES`); the shortest (by its own estimated durations)
     is kept, the first on a tie.
 
     The order becomes barriers (:func:`_barriers`): before each step an
@@ -98,7 +105,11 @@ def timeline_programs(arms, read, park, home, n_layers, planes, zones, adjacent,
         order = layer_orders(seams, chunks, n_layers)[0] if kind == "lookahead" else None
         return Schedule(seams, chunks, home, park, n_layers, kind == "priority", order=order).run()
 
-    linked, acts = min(((link, made(k, variants[link])) for link in links for k in SCHEDULES if k in kinds),
+    tried = [(link, k) for link in links for k in SCHEDULES if k in kinds and (link or k in CUT_SCHEDULES)]
+    if not tried:
+        raise ValueError("timeline_programs: the chunks as cut are scheduled only in the orders %s, got %r"
+                         % (", ".join(CUT_SCHEDULES), kinds))
+    linked, acts = min(((link, made(k, variants[link])) for link, k in tried),
                        key=lambda r: max((a[-1].C for a in r[1].values() if a), default=0.0))
     _last_schedule = acts
     arm_of = {a.name: a for a in arms}
