@@ -37,9 +37,10 @@ SCHEDULES = ("priority", "greedy", "lookahead")
 #: and not: :func:`timeline_programs` schedules both and keeps the shorter.  A link
 #: saves a start from rest, but a linked run is printed whole, in one direction:
 #: the schedule can no longer take its lines in another order (session 36, the
-#: four-arm 300 mm plate, one chunk band: its schedule 14,808 s linked against
-#: 14,178 s not, 16,641 s against 16,119 s by the one timing law; the 276 mm hex
-#: plate gained by the links, 12,495 -> 12,211 s, session 33)
+#: four-arm 300 mm plate, one chunk band, the look-ahead order: its schedule
+#: 15,895 s linked against 14,178 s not, 18,021 s against 16,119 s by the one
+#: timing law; the 276 mm hex plate gained by the links, 12,495 -> 12,211 s,
+#: session 33)
 LINKS = (True, False)
 
 #: the schedules made of the chunks as cut: the look-ahead order, whose chunks
